@@ -1,0 +1,157 @@
+//! Linear f32 RGB images (whole frames and tiles) and their 8-bit PNG encoding.
+
+use std::io::Cursor;
+use std::path::Path;
+
+use crate::settings::TileRect;
+
+/// A linear RGB image, row-major with the **top** row first (PNG order).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    /// `3 * width * height` floats: r, g, b for each pixel.
+    pub pixels: Vec<f32>,
+}
+
+impl Image {
+    pub fn new(width: u32, height: u32) -> Self {
+        Self {
+            width,
+            height,
+            pixels: vec![0.0; 3 * width as usize * height as usize],
+        }
+    }
+
+    /// Wraps raw pixels, checking the length (the farm receives them over the wire).
+    pub fn from_pixels(width: u32, height: u32, pixels: Vec<f32>) -> Result<Self, String> {
+        let expected = 3 * width as usize * height as usize;
+        if pixels.len() != expected {
+            return Err(format!(
+                "a {width}x{height} image needs {expected} floats, got {}",
+                pixels.len()
+            ));
+        }
+        Ok(Self {
+            width,
+            height,
+            pixels,
+        })
+    }
+
+    pub fn pixel(&self, x: u32, y: u32) -> [f32; 3] {
+        let i = 3 * (y as usize * self.width as usize + x as usize);
+        [self.pixels[i], self.pixels[i + 1], self.pixels[i + 2]]
+    }
+
+    /// Copies `tile` into this image with its top-left corner at `(rect.x, rect.y)`.
+    pub fn insert(&mut self, rect: TileRect, tile: &Image) {
+        assert_eq!((rect.width, rect.height), (tile.width, tile.height));
+        assert!(rect.x + rect.width <= self.width && rect.y + rect.height <= self.height);
+        let row_len = 3 * rect.width as usize;
+        for row in 0..rect.height as usize {
+            let dst = 3 * ((rect.y as usize + row) * self.width as usize + rect.x as usize);
+            let src = row * row_len;
+            self.pixels[dst..dst + row_len].copy_from_slice(&tile.pixels[src..src + row_len]);
+        }
+    }
+
+    /// Copies out the pixels of `rect`.
+    pub fn crop(&self, rect: TileRect) -> Image {
+        let mut out = Image::new(rect.width, rect.height);
+        let row_len = 3 * rect.width as usize;
+        for row in 0..rect.height as usize {
+            let src = 3 * ((rect.y as usize + row) * self.width as usize + rect.x as usize);
+            out.pixels[row * row_len..(row + 1) * row_len]
+                .copy_from_slice(&self.pixels[src..src + row_len]);
+        }
+        out
+    }
+
+    /// 8-bit RGB bytes with the course's quantisation.
+    pub fn to_rgb8(&self) -> Vec<u8> {
+        self.pixels.iter().map(|&v| quantize(v)).collect()
+    }
+
+    /// Encodes as an 8-bit RGB PNG. Pure function of the pixels, so equal images give equal bytes.
+    pub fn to_png(&self) -> Vec<u8> {
+        let mut out = Vec::new();
+        let encoder = image::codecs::png::PngEncoder::new(Cursor::new(&mut out));
+        image::ImageEncoder::write_image(
+            encoder,
+            &self.to_rgb8(),
+            self.width,
+            self.height,
+            image::ExtendedColorType::Rgb8,
+        )
+        .expect("encoding a PNG into memory cannot fail");
+        out
+    }
+
+    pub fn write_png(&self, path: &Path) -> std::io::Result<()> {
+        std::fs::write(path, self.to_png())
+    }
+
+    /// Decodes an 8-bit image (PNG) into linear floats value/255, as the course's loader does.
+    pub fn from_png_bytes(bytes: &[u8]) -> Result<Image, String> {
+        let decoded = image::load_from_memory(bytes).map_err(|e| e.to_string())?;
+        let rgb = decoded.to_rgb8();
+        let (width, height) = rgb.dimensions();
+        let pixels = rgb.as_raw().iter().map(|&b| b as f32 / 255.0).collect();
+        Ok(Image {
+            width,
+            height,
+            pixels,
+        })
+    }
+}
+
+/// Clamps to [0,1], scales by 255 and truncates (conventions §7.1, no gamma).
+///
+/// The small guard keeps an average of identical samples of, say, 0.8 at 204 even when
+/// floating-point summation leaves it a hair below (conventions §0.4). NaN maps to 0.
+pub fn quantize(v: f32) -> u8 {
+    let v = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
+    ((v as f64) * 255.0 + 1e-4).floor().min(255.0) as u8
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantisation_truncates_without_gamma() {
+        assert_eq!(quantize(0.7), 178);
+        assert_eq!(quantize(0.8), 204);
+        assert_eq!(quantize(0.043), 10);
+        assert_eq!(quantize(0.349), 88);
+        assert_eq!(quantize(0.1), 25);
+        assert_eq!(quantize(1.5), 255);
+        assert_eq!(quantize(-1.0), 0);
+        assert_eq!(quantize(f32::NAN), 0);
+        // An average that lands one ulp below 0.8 still gives the reference's 204.
+        let avg = (0..40).map(|_| 0.8f64).sum::<f64>() / 40.0;
+        assert_eq!(quantize(avg as f32), 204);
+    }
+
+    #[test]
+    fn insert_and_crop_round_trip() {
+        let mut img = Image::new(5, 4);
+        let mut tile = Image::new(2, 3);
+        for (i, p) in tile.pixels.iter_mut().enumerate() {
+            *p = i as f32;
+        }
+        let rect = TileRect::new(3, 1, 2, 3);
+        img.insert(rect, &tile);
+        assert_eq!(img.crop(rect), tile);
+        assert_eq!(img.pixel(0, 0), [0.0; 3]);
+        assert_eq!(img.pixel(3, 1), [0.0, 1.0, 2.0]);
+    }
+
+    #[test]
+    fn png_round_trip_keeps_quantised_values() {
+        let img = Image::from_pixels(2, 1, vec![0.8, 0.1, 1.0, 0.0, 0.5, 0.25]).unwrap();
+        let back = Image::from_png_bytes(&img.to_png()).unwrap();
+        assert_eq!(back.to_rgb8(), img.to_rgb8());
+    }
+}
