@@ -104,6 +104,26 @@ pub fn mean_flip(test: &Image, reference: &Image) -> Result<f64, String> {
     Ok(pool.mean() as f64)
 }
 
+/// The metrics golden tests and reports quote, for one image against a reference.
+#[cfg(feature = "flip")]
+#[derive(Clone, Copy, Debug)]
+pub struct Comparison {
+    pub rmse: f64,
+    pub psnr: f64,
+    pub mean_flip: f64,
+}
+
+#[cfg(feature = "flip")]
+impl Comparison {
+    pub fn of(image: &Image, reference: &Image) -> Result<Comparison, String> {
+        Ok(Comparison {
+            rmse: rmse(image, reference)?,
+            psnr: psnr(image, reference)?,
+            mean_flip: mean_flip(image, reference)?,
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

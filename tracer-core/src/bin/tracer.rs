@@ -36,6 +36,8 @@ enum Command {
         #[arg(long, short)]
         quiet: bool,
     },
+    /// Compare two PNGs: RMSE, PSNR and mean FLIP.
+    Compare { image: PathBuf, reference: PathBuf },
     /// Measure BVH build time, ray throughput and a 1-spp render on the scene's camera.
     Bench {
         scene: PathBuf,
@@ -185,6 +187,20 @@ fn run(cli: Cli) -> Result<(), String> {
                 settings.height,
                 settings.spp,
                 rays as f64 / seconds / 1e6
+            );
+            Ok(())
+        }
+        Command::Compare { image, reference } => {
+            let read = |p: &PathBuf| {
+                std::fs::read(p)
+                    .map_err(|e| format!("cannot read {}: {e}", p.display()))
+                    .and_then(|b| tracer_core::Image::from_png_bytes(&b))
+            };
+            let (a, b) = (read(&image)?, read(&reference)?);
+            let m = tracer_core::metrics::Comparison::of(&a, &b)?;
+            println!(
+                "rmse {:.5}  psnr {:.2} dB  mean_flip {:.4}",
+                m.rmse, m.psnr, m.mean_flip
             );
             Ok(())
         }
