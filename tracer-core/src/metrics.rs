@@ -58,7 +58,7 @@ pub fn rel_mse(image: &Image, reference: &Image) -> Result<f64, String> {
 /// Averages `factor`×`factor` blocks (box filter), to compare a reduced render with a
 /// full-size reference. Dimensions must divide.
 pub fn downsample(image: &Image, factor: u32) -> Result<Image, String> {
-    if factor == 0 || image.width % factor != 0 || image.height % factor != 0 {
+    if factor == 0 || !image.width.is_multiple_of(factor) || !image.height.is_multiple_of(factor) {
         return Err(format!(
             "{}x{} does not divide by {factor}",
             image.width, image.height
@@ -79,8 +79,8 @@ pub fn downsample(image: &Image, factor: u32) -> Result<Image, String> {
                 }
             }
             let i = 3 * (y * w + x) as usize;
-            for c in 0..3 {
-                out.pixels[i + c] = acc[c] / n;
+            for (out, sum) in out.pixels[i..i + 3].iter_mut().zip(acc) {
+                *out = sum / n;
             }
         }
     }

@@ -358,7 +358,7 @@ impl Builder<'_> {
         }
         let mut best: Option<(f64, usize, usize)> = None;
         for axis in 0..3 {
-            if !(extent[axis] > 0.0) {
+            if extent[axis] <= 0.0 || extent[axis].is_nan() {
                 continue;
             }
             let (boxes, counts) = (&bin_bounds[axis], &bin_counts[axis]);
