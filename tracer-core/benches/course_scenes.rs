@@ -30,7 +30,10 @@ fn main() {
         "{:<12} {:>9} {:>10} {:>11} {:>12}",
         "scene", "load ms", "1 spp s", "16 spp s", "16spp Mray/s"
     );
-    for name in SCENES.iter().filter(|n| filter.is_empty() || filter.iter().any(|f| f == *n)) {
+    for name in SCENES
+        .iter()
+        .filter(|n| filter.is_empty() || filter.iter().any(|f| f == *n))
+    {
         let started = Instant::now();
         let scene = Scene::load(&root.join(format!("{name}.scene"))).expect("course scene loads");
         let load_ms = started.elapsed().as_secs_f64() * 1e3;
