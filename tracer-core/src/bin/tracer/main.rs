@@ -4,6 +4,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
+mod report;
+
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use tracer_core::{CameraOverride, RenderSettings, Renderer, Scene, TextureFilter};
@@ -36,6 +38,9 @@ enum Command {
         #[arg(long, short)]
         quiet: bool,
     },
+    /// Measure error against run time over sample counts and thread counts, against a
+    /// high-sample reference: report.csv, report.md and error_vs_time.png.
+    Report(report::ReportArgs),
     /// Compare two PNGs: RMSE, PSNR and mean FLIP.
     Compare { image: PathBuf, reference: PathBuf },
     /// Measure BVH build time, ray throughput and a 1-spp render on the scene's camera.
@@ -190,6 +195,7 @@ fn run(cli: Cli) -> Result<(), String> {
             );
             Ok(())
         }
+        Command::Report(args) => report::run(args),
         Command::Compare { image, reference } => {
             let read = |p: &PathBuf| {
                 std::fs::read(p)
