@@ -1,31 +1,18 @@
 //! The extreme-case suite over `scenes/extreme/`: every case renders with finite pixels, no
 //! panic and bounded work, or is rejected at load. docs/numerics.md describes each case.
 
-use std::path::PathBuf;
-
 use glam::DVec3;
 use tracer_core::geometry::{Ray, Transform};
 use tracer_core::scene::SceneDescription;
 use tracer_core::shade::RAY_BUDGET_PER_SAMPLE;
 use tracer_core::{CameraOverride, FsAssets, Image, MemoryAssets, RenderSettings, Renderer, Scene};
 
-fn extreme(file: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../scenes/extreme")
-        .join(file)
-}
+mod common;
+
+use common::{extreme, settings};
 
 fn load(name: &str) -> Scene {
-    Scene::load(&extreme(&format!("{name}.scene"))).unwrap_or_else(|e| panic!("{e}"))
-}
-
-fn settings(width: u32, height: u32, spp: u32) -> RenderSettings {
-    RenderSettings {
-        width,
-        height,
-        spp,
-        ..RenderSettings::default()
-    }
+    common::load(extreme(&format!("{name}.scene")))
 }
 
 fn render(scene: &Scene, s: &RenderSettings) -> (Image, u64) {

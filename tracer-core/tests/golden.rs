@@ -6,29 +6,17 @@
 //! same size. Tolerance: mean FLIP ≤ 0.05 (the bar the course's own solution meets at full
 //! size) and RMSE ≤ 0.03 on [0,1] values.
 
-use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
 use tracer_core::metrics::{downsample, mean_flip, rmse};
 use tracer_core::{Image, RenderSettings, Renderer, Scene, TileRect};
 
-fn course(file: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/scenes/course")
-        .join(file)
-}
+mod common;
+
+use common::{course, settings};
 
 fn load(name: &str) -> Scene {
-    Scene::load(&course(&format!("{name}.scene"))).unwrap_or_else(|e| panic!("{e}"))
-}
-
-fn settings(width: u32, height: u32, spp: u32) -> RenderSettings {
-    RenderSettings {
-        width,
-        height,
-        spp,
-        ..RenderSettings::default()
-    }
+    common::load(course(&format!("{name}.scene")))
 }
 
 fn render(scene: &Scene, s: &RenderSettings) -> Image {
