@@ -76,19 +76,30 @@ impl Mesh {
 impl Mesh {
     /// The same mesh with its BVH built again from scratch (benchmarks time this).
     pub fn rebuilt(&self) -> Mesh {
-        let mut positions = Vec::with_capacity(self.corners.len() * 3);
-        let mut triangles = Vec::with_capacity(self.corners.len());
-        for (i, c) in self.corners.iter().enumerate() {
-            positions.extend_from_slice(c);
-            let base = 3 * i as u32;
-            triangles.push([base, base + 1, base + 2]);
+        use rayon::prelude::*;
+        let bounds: Vec<Aabb> = self
+            .corners
+            .par_iter()
+            .map(|c| Aabb::from_points(c))
+            .collect();
+        let bvh = Bvh::build(&bounds);
+        let corners = bvh
+            .order
+            .iter()
+            .map(|&o| self.corners[o as usize])
+            .collect();
+        let indices = bvh
+            .order
+            .iter()
+            .map(|&o| self.indices[o as usize])
+            .collect();
+        Mesh {
+            corners,
+            indices,
+            normals: self.normals.clone(),
+            tex_coords: self.tex_coords.clone(),
+            bvh,
         }
-        let mut mesh = Mesh::new(&positions, Vec::new(), Vec::new(), &triangles);
-        let order = mesh.bvh.order.clone();
-        mesh.indices = order.iter().map(|&o| self.indices[o as usize]).collect();
-        mesh.normals = self.normals.clone();
-        mesh.tex_coords = self.tex_coords.clone();
-        mesh
     }
 }
 
@@ -193,12 +204,28 @@ impl World {
         )
     }
 
+    /// The top-level BVH's traversal, skipped when it holds a single object (whose own test
+    /// is exact, so its box adds nothing).
+    #[inline(always)]
+    fn traverse_top(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+    ) -> bool {
+        if self.objects.len() == 1 {
+            leaf(0..1, t_max)
+        } else {
+            self.top.traverse(ray, t_max, leaf)
+        }
+    }
+
     /// The nearest hit with t in (t_min, t_max); `ray.dir` need not be unit length.
     pub fn intersect(&self, ray: &Ray, t_min: f64, t_max: f64) -> Option<Hit> {
         let world_tri_ray = TriangleRay::new(ray);
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
-        self.top.traverse(ray, &mut t_max, |range, t_max| {
+        self.traverse_top(ray, &mut t_max, |range, t_max| {
             for slot in range {
                 match self.objects[slot] {
                     Object::Sphere(i) => {
@@ -267,7 +294,7 @@ impl World {
     pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
         let world_tri_ray = TriangleRay::new(ray);
         let mut t_limit = t_max;
-        self.top.traverse(ray, &mut t_limit, |range, t_max| {
+        self.traverse_top(ray, &mut t_limit, |range, t_max| {
             for slot in range {
                 let blocked = match self.objects[slot] {
                     Object::Sphere(i) => {
