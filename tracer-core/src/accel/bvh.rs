@@ -491,6 +491,7 @@ struct Split {
     axis: usize,
     lo: f64,
     scale: f64,
+    bins: usize,
     bin: usize,
     /// The children's bounds, from the bins.
     left: Aabb,
@@ -500,21 +501,52 @@ struct Split {
 impl Split {
     #[inline(always)]
     fn goes_left(&self, centroid: f64) -> bool {
-        bin_of(centroid, self.lo, self.scale) < self.bin
+        bin_of(centroid, self.lo, self.scale, self.bins) < self.bin
     }
 }
 
-/// Per axis and bin: the union of the primitives' bounds and their number.
+/// Per axis and bin: the union of the primitives' bounds (min x, y, z, max x, y, z) and
+/// their number.
 #[derive(Clone)]
 struct Bins {
-    bounds: [[Aabb; BINS]; 3],
+    bounds: [[[f64; 6]; BINS]; 3],
     counts: [[u32; BINS]; 3],
+}
+
+const EMPTY_BOX: [f64; 6] = [
+    f64::INFINITY,
+    f64::INFINITY,
+    f64::INFINITY,
+    f64::NEG_INFINITY,
+    f64::NEG_INFINITY,
+    f64::NEG_INFINITY,
+];
+
+/// `acc` grown by `b`. Written so that it compiles to plain min/max instructions; like
+/// `f64::min`, a NaN in `b` leaves `acc` as it was.
+#[inline(always)]
+fn grow_box(acc: &mut [f64; 6], b: &[f64; 6]) {
+    for i in 0..3 {
+        acc[i] = if b[i] < acc[i] { b[i] } else { acc[i] };
+        acc[i + 3] = if b[i + 3] > acc[i + 3] {
+            b[i + 3]
+        } else {
+            acc[i + 3]
+        };
+    }
+}
+
+fn to_aabb(b: &[f64; 6]) -> Aabb {
+    Aabb {
+        min: DVec3::new(b[0], b[1], b[2]),
+        max: DVec3::new(b[3], b[4], b[5]),
+    }
 }
 
 impl Bins {
     fn empty() -> Bins {
         Bins {
-            bounds: [[Aabb::EMPTY; BINS]; 3],
+            bounds: [[EMPTY_BOX; BINS]; 3],
             counts: [[0; BINS]; 3],
         }
     }
@@ -523,7 +555,7 @@ impl Bins {
     fn merge(mut self, o: Bins) -> Bins {
         for axis in 0..3 {
             for bin in 0..BINS {
-                self.bounds[axis][bin] = self.bounds[axis][bin].union(o.bounds[axis][bin]);
+                grow_box(&mut self.bounds[axis][bin], &o.bounds[axis][bin]);
                 self.counts[axis][bin] += o.counts[axis][bin];
             }
         }
@@ -578,24 +610,25 @@ impl Builder<'_> {
         }
     }
 
-    fn bin(&self, prims: &[u32], lo: DVec3, scale: DVec3) -> Bins {
+    fn bin(&self, prims: &[u32], lo: DVec3, scale: DVec3, bins: usize) -> Bins {
         if prims.len() >= PARALLEL_BINNING {
             return prims
                 .par_chunks(PARALLEL_BINNING / 2)
-                .map(|chunk| self.bin(chunk, lo, scale))
+                .map(|chunk| self.bin(chunk, lo, scale, bins))
                 .reduce(Bins::empty, Bins::merge);
         }
-        let mut bins = Bins::empty();
+        let mut out = Bins::empty();
         for &p in prims {
             let c = self.centroids[p as usize];
             let b = self.bounds[p as usize];
+            let b = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
             for axis in 0..3 {
-                let bin = bin_of(c[axis], lo[axis], scale[axis]);
-                bins.counts[axis][bin] += 1;
-                bins.bounds[axis][bin] = bins.bounds[axis][bin].union(b);
+                let bin = bin_of(c[axis], lo[axis], scale[axis], bins);
+                out.counts[axis][bin] += 1;
+                grow_box(&mut out.bounds[axis][bin], &b);
             }
         }
-        bins
+        out
     }
 
     /// The cheapest binned SAH split over all three axes (binned in one pass), or None when
@@ -603,53 +636,42 @@ impl Builder<'_> {
     fn find_split(&self, prims: &[u32], bounds: Aabb, centroid_bounds: Aabb) -> Option<Split> {
         let extent = centroid_bounds.extent();
         let lo = centroid_bounds.min;
-        let scale = DVec3::new(
-            if extent.x > 0.0 {
-                BINS as f64 / extent.x
-            } else {
-                0.0
-            },
-            if extent.y > 0.0 {
-                BINS as f64 / extent.y
-            } else {
-                0.0
-            },
-            if extent.z > 0.0 {
-                BINS as f64 / extent.z
-            } else {
-                0.0
-            },
-        );
-        let bins = self.bin(prims, lo, scale);
+        // Small nodes use fewer bins: as good a split for far less sweeping.
+        let nbins = prims.len().clamp(2, BINS);
+        let per = |e: f64| if e > 0.0 { nbins as f64 / e } else { 0.0 };
+        let scale = DVec3::new(per(extent.x), per(extent.y), per(extent.z));
+        let bins = self.bin(prims, lo, scale, nbins);
         let mut best: Option<(f64, usize, usize, Aabb, Aabb)> = None;
         for axis in 0..3 {
-            if !(extent[axis] > 0.0) {
+            // NaN extents are skipped too.
+            let usable = extent[axis] > 0.0;
+            if !usable {
                 continue;
             }
             let (boxes, counts) = (&bins.bounds[axis], &bins.counts[axis]);
             // Sweep from the right for each suffix's box and count, then from the left.
-            let mut right_box = [Aabb::EMPTY; BINS];
+            let mut right_box = [EMPTY_BOX; BINS];
             let mut right_count = [0usize; BINS];
-            let mut acc = Aabb::EMPTY;
+            let mut acc = EMPTY_BOX;
             let mut count = 0;
-            for i in (1..BINS).rev() {
-                acc = acc.union(boxes[i]);
+            for i in (1..nbins).rev() {
+                grow_box(&mut acc, &boxes[i]);
                 count += counts[i] as usize;
                 right_box[i] = acc;
                 right_count[i] = count;
             }
-            let mut acc = Aabb::EMPTY;
+            let mut acc = EMPTY_BOX;
             let mut count = 0;
-            for split in 1..BINS {
-                acc = acc.union(boxes[split - 1]);
+            for split in 1..nbins {
+                grow_box(&mut acc, &boxes[split - 1]);
                 count += counts[split - 1] as usize;
                 if count == 0 || right_count[split] == 0 {
                     continue;
                 }
-                let cost = acc.surface_area() * count as f64
-                    + right_box[split].surface_area() * right_count[split] as f64;
+                let cost =
+                    area(&acc) * count as f64 + area(&right_box[split]) * right_count[split] as f64;
                 if best.is_none_or(|(c, ..)| cost < c) {
-                    best = Some((cost, axis, split, acc, right_box[split]));
+                    best = Some((cost, axis, split, to_aabb(&acc), to_aabb(&right_box[split])));
                 }
             }
         }
@@ -664,6 +686,7 @@ impl Builder<'_> {
             axis,
             lo: lo[axis],
             scale: scale[axis],
+            bins: nbins,
             bin,
             left,
             right,
@@ -693,9 +716,16 @@ fn prims_len(a: &[u32], b: &[u32]) -> usize {
     a.len().min(b.len())
 }
 
-#[inline]
-fn bin_of(c: f64, lo: f64, scale: f64) -> usize {
-    (((c - lo) * scale) as usize).min(BINS - 1)
+#[inline(always)]
+fn bin_of(c: f64, lo: f64, scale: f64, bins: usize) -> usize {
+    (((c - lo) * scale) as usize).min(bins - 1)
+}
+
+/// Surface area of a non-empty box (the sweeps only measure boxes holding primitives).
+#[inline(always)]
+fn area(b: &[f64; 6]) -> f64 {
+    let (x, y, z) = (b[3] - b[0], b[4] - b[1], b[5] - b[2]);
+    2.0 * (x * y + y * z + z * x)
 }
 
 #[cfg(test)]
