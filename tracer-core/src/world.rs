@@ -207,7 +207,7 @@ impl World {
     /// The top-level BVH's traversal, skipped when it holds a single object (whose own test
     /// is exact, so its box adds nothing).
     #[inline(always)]
-    fn traverse_top(
+    fn traverse_top<const ORDERED: bool>(
         &self,
         ray: &Ray,
         t_max: &mut f64,
@@ -215,8 +215,10 @@ impl World {
     ) -> bool {
         if self.objects.len() == 1 {
             leaf(0..1, t_max)
-        } else {
+        } else if ORDERED {
             self.top.traverse(ray, t_max, leaf)
+        } else {
+            self.top.traverse_any(ray, t_max, leaf)
         }
     }
 
@@ -225,7 +227,7 @@ impl World {
         let world_tri_ray = TriangleRay::new(ray);
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
-        self.traverse_top(ray, &mut t_max, |range, t_max| {
+        self.traverse_top::<true>(ray, &mut t_max, |range, t_max| {
             for slot in range {
                 match self.objects[slot] {
                     Object::Sphere(i) => {
@@ -294,7 +296,7 @@ impl World {
     pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
         let world_tri_ray = TriangleRay::new(ray);
         let mut t_limit = t_max;
-        self.traverse_top(ray, &mut t_limit, |range, t_max| {
+        self.traverse_top::<false>(ray, &mut t_limit, |range, t_max| {
             for slot in range {
                 let blocked = match self.objects[slot] {
                     Object::Sphere(i) => {
@@ -313,7 +315,7 @@ impl World {
                         let local = model.transform.ray_to_local(ray);
                         let tri_ray = TriangleRay::new(&local);
                         let mut limit = *t_max;
-                        mesh.bvh.traverse(&local, &mut limit, |tris, t_max| {
+                        mesh.bvh.traverse_any(&local, &mut limit, |tris, t_max| {
                             tris.into_iter().any(|tri| {
                                 let [a, b, c] = mesh.corners[tri];
                                 intersect_triangle(&tri_ray, a, b, c, 0.0, *t_max).is_some()

@@ -9,7 +9,7 @@ use crate::geometry::{Aabb, Ray};
 /// plane), so one visit tests four boxes at once. Boxes are rounded outward from f64, so
 /// they always contain the primitives' own bounds.
 #[derive(Clone, Copy, Debug)]
-#[repr(C, align(64))]
+#[repr(C, align(128))]
 pub struct Node {
     /// `bounds[2 * axis]` holds the four children's minima on `axis`, `bounds[2 * axis + 1]`
     /// their maxima. Unused slots hold an empty box (min +∞, max −∞) that nothing hits.
@@ -149,15 +149,37 @@ impl Bvh {
             return false;
         }
         match RayF32::new(ray) {
-            Some(r) => self.traverse_with(t_max, leaf, |node, t_max| r.hit4(node, t_max)),
-            None => self.traverse_with(t_max, leaf, |node, t_max| hit4_f64(node, ray, t_max)),
+            Some(r) => self.traverse_with::<true>(t_max, leaf, |node, t_max| r.hit4(node, t_max)),
+            None => {
+                self.traverse_with::<true>(t_max, leaf, |node, t_max| hit4_f64(node, ray, t_max))
+            }
+        }
+    }
+
+    /// Like [`Bvh::traverse`], for any-hit queries: children are visited in node order rather
+    /// than nearest first, which saves sorting when any hit ends the query.
+    #[inline(always)]
+    pub fn traverse_any(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+    ) -> bool {
+        if self.nodes.is_empty() {
+            return false;
+        }
+        match RayF32::new(ray) {
+            Some(r) => self.traverse_with::<false>(t_max, leaf, |node, t_max| r.hit4(node, t_max)),
+            None => {
+                self.traverse_with::<false>(t_max, leaf, |node, t_max| hit4_f64(node, ray, t_max))
+            }
         }
     }
 
     /// The traversal loop, given a test that returns a node's hit mask and conservative
     /// (never too large) entry distances.
     #[inline(always)]
-    fn traverse_with(
+    fn traverse_with<const ORDERED: bool>(
         &self,
         t_max: &mut f64,
         mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
@@ -179,7 +201,7 @@ impl Bvh {
                 mask &= mask - 1;
                 let d = dist[c];
                 let mut i = n;
-                while i > 0 && sorted[i - 1].0 > d {
+                while ORDERED && i > 0 && sorted[i - 1].0 > d {
                     sorted[i] = sorted[i - 1];
                     i -= 1;
                 }
@@ -193,7 +215,10 @@ impl Bvh {
             let mut np = 0;
             for &(d, c) in &sorted[..n] {
                 if d as f64 > *t_max {
-                    break;
+                    if ORDERED {
+                        break;
+                    }
+                    continue;
                 }
                 let child = node.index[c];
                 let count = node.count[c];
@@ -203,8 +228,10 @@ impl Bvh {
                         return true;
                     }
                 } else if next.is_none() {
+                    prefetch(&self.nodes, child);
                     next = Some((child, d));
                 } else {
+                    prefetch(&self.nodes, child);
                     pending[np] = (child, d);
                     np += 1;
                 }
@@ -234,6 +261,25 @@ impl Bvh {
             }
         }
     }
+}
+
+/// Starts fetching both cache lines of `nodes[index]` (a hint: an index out of range is
+/// harmless, nothing is read).
+#[inline(always)]
+#[allow(unused_unsafe)]
+fn prefetch(nodes: &[Node], index: u32) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let p = nodes.as_ptr().wrapping_add(index as usize) as *const i8;
+        // SAFETY: prefetching never faults, whatever the address.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(p);
+            _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64));
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (nodes, index);
 }
 
 /// Per-ray constants of the f32 slab test. Per axis, the near and far planes are chosen by
