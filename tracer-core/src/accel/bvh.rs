@@ -857,9 +857,21 @@ mod tests {
                 }
                 false
             });
+            let mut found_any = Vec::new();
+            bvh.traverse_any(&ray, &mut f64::INFINITY.clone(), |range, _| {
+                for slot in range {
+                    let p = bvh.order[slot] as usize;
+                    if prims[p].hit(&ray, f64::INFINITY).is_some() {
+                        found_any.push(p);
+                    }
+                }
+                false
+            });
             expected.sort();
             found.sort();
+            found_any.sort();
             assert_eq!(found, expected);
+            assert_eq!(found_any, expected);
         }
     }
 
