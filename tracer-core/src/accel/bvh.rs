@@ -1,21 +1,23 @@
 use std::mem::MaybeUninit;
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use crate::geometry::{Aabb, Ray};
 
-/// One cache line holding **both children** of a binary BVH node, so a visit tests two boxes
-/// from one memory fetch. Boxes are f32, rounded outward, which halves the footprint of f64
-/// boxes; the slab test itself runs in f64 so that its precision matches the primitives'.
+/// A 4-wide BVH node: the boxes of up to four children in SoA f32 (one SIMD register per
+/// plane), so one visit tests four boxes at once. Boxes are rounded outward from f64, so
+/// they always contain the primitives' own bounds.
 #[derive(Clone, Copy, Debug)]
-#[repr(C, align(64))]
+#[repr(C, align(128))]
 pub struct Node {
-    /// Per child: min x, min y, min z, max x, max y, max z.
-    pub bounds: [[f32; 6]; 2],
+    /// `bounds[2 * axis]` holds the four children's minima on `axis`, `bounds[2 * axis + 1]`
+    /// their maxima. Unused slots hold an empty box (min +∞, max −∞) that nothing hits.
+    pub bounds: [[f32; 4]; 6],
     /// Per child: the child node's index, or a leaf's first primitive slot.
-    pub index: [u32; 2],
-    /// Per child: 0 for an interior child, else the leaf's primitive count.
-    pub count: [u32; 2],
+    pub index: [u32; 4],
+    /// Per child: 0 for an interior child (or an unused slot), else the leaf's primitive count.
+    pub count: [u32; 4],
 }
 
 /// A BVH over primitives known only by their bounds; the owner intersects them through a
@@ -33,11 +35,23 @@ const BINS: usize = 16;
 const MAX_LEAF: usize = 4;
 const TRAVERSAL_COST: f64 = 1.0;
 const INTERSECT_COST: f64 = 1.0;
-const STACK_DEPTH: usize = 96;
-/// Marks the missing second child of a root that is a single leaf.
+/// The deepest binary tree the builder makes; a 4-wide node is never deeper.
+const MAX_DEPTH: usize = 96;
+/// Each level of the 4-wide tree pushes at most three siblings.
+const STACK_DEPTH: usize = 3 * MAX_DEPTH;
+/// Marks an unused child slot.
 const NO_CHILD: u32 = u32::MAX;
 /// Subtrees at least this large are built on another rayon task.
 const PARALLEL_THRESHOLD: usize = 4096;
+
+/// Outward rounding margins of the f32 slab test. Each slab distance is off by at most about
+/// 4 f32 rounding units (origin rounding is taken care of by choosing the rounded-up or down
+/// origin per plane); 2^-20 is 16 units. The absolute term covers subnormal results.
+const SLAB_DOWN: f32 = 1.0 - 1.0 / (1u32 << 20) as f32;
+const SLAB_UP: f32 = 1.0 + 1.0 / (1u32 << 20) as f32;
+const SLAB_ABS: f32 = 1e-37;
+/// Rays whose origin or inverse direction fall outside this range take the f64 slab test.
+const F32_SAFE: f64 = 1e30;
 
 /// The binary tree the builder makes before it is packed into [`Node`]s.
 enum Tree {
@@ -69,34 +83,40 @@ impl Tree {
 
 impl Bvh {
     /// Builds with the binned surface-area heuristic (16 bins on each axis), large subtrees
-    /// in parallel. The result does not depend on the thread count.
+    /// in parallel, then collapses the binary tree into 4-wide nodes. The result does not
+    /// depend on the thread count.
     pub fn build(bounds: &[Aabb]) -> Bvh {
         let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
         if bounds.is_empty() {
             return Bvh::default();
         }
-        let centroids: Vec<DVec3> = bounds.iter().map(Aabb::centroid).collect();
+        let centroids: Vec<DVec3> = bounds.par_iter().map(Aabb::centroid).collect();
+        let (root_bounds, root_centroids) = bounds
+            .par_iter()
+            .zip(&centroids)
+            .fold(
+                || (Aabb::EMPTY, Aabb::EMPTY),
+                |(b, c), (pb, pc)| (b.union(*pb), c.grow(*pc)),
+            )
+            .reduce(
+                || (Aabb::EMPTY, Aabb::EMPTY),
+                |(b0, c0), (b1, c1)| (b0.union(b1), c0.union(c1)),
+            );
         let builder = Builder {
             bounds,
             centroids: &centroids,
         };
-        let tree = builder.build(&mut order, 0, 0);
-        let mut nodes = Vec::with_capacity(bounds.len() / 2 + 1);
+        let tree = builder.build(&mut order, 0, 0, root_bounds, root_centroids);
+        let mut nodes = Vec::with_capacity(bounds.len() / 4 + 1);
         let root_bounds = tree.bounds();
         let depth = tree.depth();
-        match tree {
+        match &tree {
             Tree::Interior { children, .. } => {
-                pack(&children, &mut nodes);
+                pack(children, &mut nodes);
             }
             leaf @ Tree::Leaf { .. } => {
-                // A lone leaf: one node whose second child is an empty box that nothing hits.
-                let empty = Tree::Leaf {
-                    bounds: Aabb::EMPTY,
-                    first: 0,
-                    count: 0,
-                };
-                pack(&[leaf, empty], &mut nodes);
-                nodes[0].index[1] = NO_CHILD;
+                // A lone leaf: one node with one used slot.
+                pack_node(&[leaf], &mut nodes);
             }
         }
         Bvh {
@@ -123,46 +143,108 @@ impl Bvh {
         &self,
         ray: &Ray,
         t_max: &mut f64,
-        mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+        leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
     ) -> bool {
         if self.nodes.is_empty() {
             return false;
         }
-        // Left uninitialised: zeroing 1.5 KB per query cost more than a whole traversal of a
+        match RayF32::new(ray) {
+            Some(r) => self.traverse_with::<true>(t_max, leaf, |node, t_max| r.hit4(node, t_max)),
+            None => {
+                self.traverse_with::<true>(t_max, leaf, |node, t_max| hit4_f64(node, ray, t_max))
+            }
+        }
+    }
+
+    /// Like [`Bvh::traverse`], for any-hit queries: children are visited in node order rather
+    /// than nearest first, which saves sorting when any hit ends the query.
+    #[inline(always)]
+    pub fn traverse_any(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+    ) -> bool {
+        if self.nodes.is_empty() {
+            return false;
+        }
+        match RayF32::new(ray) {
+            Some(r) => self.traverse_with::<false>(t_max, leaf, |node, t_max| r.hit4(node, t_max)),
+            None => {
+                self.traverse_with::<false>(t_max, leaf, |node, t_max| hit4_f64(node, ray, t_max))
+            }
+        }
+    }
+
+    /// The traversal loop, given a test that returns a node's hit mask and conservative
+    /// (never too large) entry distances.
+    #[inline(always)]
+    fn traverse_with<const ORDERED: bool>(
+        &self,
+        t_max: &mut f64,
+        mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+        hit4: impl Fn(&Node, f64) -> (u32, [f32; 4]),
+    ) -> bool {
+        // Left uninitialised: zeroing it per query cost more than a whole traversal of a
         // ray that misses. Only slots below `top`, all written first, are ever read.
-        let mut stack = [const { MaybeUninit::<(u32, f64)>::uninit() }; STACK_DEPTH];
+        let mut stack = [const { MaybeUninit::<(u32, f32)>::uninit() }; STACK_DEPTH];
         let mut top = 0;
         let mut index = 0usize;
         loop {
             let node = &self.nodes[index];
-            let hit0 = slab(&node.bounds[0], ray, *t_max);
-            let hit1 = slab(&node.bounds[1], ray, *t_max);
-            let mut next: Option<usize> = None;
-            // Nearer child first; leaves are intersected at once, since a hit shrinks t_max
-            // and culls the rest.
-            let order = if hit1 < hit0 { [1, 0] } else { [0, 1] };
-            for c in order {
-                let entry = if c == 0 { hit0 } else { hit1 };
-                // A miss is +∞, which `> t_max` alone would let through when t_max is +∞.
-                if entry == f64::INFINITY || entry > *t_max || node.index[c] == NO_CHILD {
+            let (mut mask, dist) = hit4(node, *t_max);
+            // Hit children sorted nearest first (insertion sort of at most four).
+            let mut sorted = [(0f32, 0usize); 4];
+            let mut n = 0;
+            while mask != 0 {
+                let c = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                let d = dist[c];
+                let mut i = n;
+                while ORDERED && i > 0 && sorted[i - 1].0 > d {
+                    sorted[i] = sorted[i - 1];
+                    i -= 1;
+                }
+                sorted[i] = (d, c);
+                n += 1;
+            }
+            // Leaves are intersected at once, since a hit shrinks t_max and culls the rest;
+            // the nearest interior child is visited next, the others pushed farthest first.
+            let mut next: Option<(u32, f32)> = None;
+            let mut pending = [(0u32, 0f32); 3];
+            let mut np = 0;
+            for &(d, c) in &sorted[..n] {
+                if d as f64 > *t_max {
+                    if ORDERED {
+                        break;
+                    }
                     continue;
                 }
-                let child = node.index[c] as usize;
-                let count = node.count[c] as usize;
+                let child = node.index[c];
+                let count = node.count[c];
                 if count > 0 {
-                    if leaf(child..child + count, t_max) {
+                    let first = child as usize;
+                    if leaf(first..first + count as usize, t_max) {
                         return true;
                     }
                 } else if next.is_none() {
-                    next = Some(child);
+                    prefetch(&self.nodes, child);
+                    next = Some((child, d));
                 } else {
-                    stack[top].write((child as u32, entry));
-                    top += 1;
+                    prefetch(&self.nodes, child);
+                    pending[np] = (child, d);
+                    np += 1;
                 }
             }
-            if let Some(n) = next {
-                index = n;
-                continue;
+            for &p in pending[..np].iter().rev() {
+                stack[top].write(p);
+                top += 1;
+            }
+            if let Some((n, d)) = next {
+                if d as f64 <= *t_max {
+                    index = n as usize;
+                    continue;
+                }
             }
             // Skip subtrees a hit found since they were pushed has put out of reach.
             loop {
@@ -172,7 +254,7 @@ impl Bvh {
                 top -= 1;
                 // SAFETY: slot `top` was written by the push that raised `top` above it.
                 let (n, entry) = unsafe { stack[top].assume_init() };
-                if entry <= *t_max {
+                if entry as f64 <= *t_max {
                     index = n as usize;
                     break;
                 }
@@ -181,21 +263,184 @@ impl Bvh {
     }
 }
 
-/// The slab test against an f32 box in f64: the entry distance, or +∞ on a miss.
+/// Starts fetching both cache lines of `nodes[index]` (a hint: an index out of range is
+/// harmless, nothing is read).
 #[inline(always)]
-fn slab(b: &[f32; 6], ray: &Ray, t_max: f64) -> f64 {
-    let tx0 = (b[0] as f64 - ray.origin.x) * ray.inv_dir.x;
-    let tx1 = (b[3] as f64 - ray.origin.x) * ray.inv_dir.x;
-    let ty0 = (b[1] as f64 - ray.origin.y) * ray.inv_dir.y;
-    let ty1 = (b[4] as f64 - ray.origin.y) * ray.inv_dir.y;
-    let tz0 = (b[2] as f64 - ray.origin.z) * ray.inv_dir.z;
-    let tz1 = (b[5] as f64 - ray.origin.z) * ray.inv_dir.z;
-    let near = tx0.min(tx1).max(ty0.min(ty1)).max(tz0.min(tz1)).max(0.0);
-    let far = tx0.max(tx1).min(ty0.max(ty1)).min(tz0.max(tz1)).min(t_max);
-    if near <= far {
-        near
+#[allow(unused_unsafe)]
+fn prefetch(nodes: &[Node], index: u32) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let p = nodes.as_ptr().wrapping_add(index as usize) as *const i8;
+        // SAFETY: prefetching never faults, whatever the address.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(p);
+            _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64));
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (nodes, index);
+}
+
+/// Per-ray constants of the f32 slab test. Per axis, the near and far planes are chosen by
+/// the direction's sign, and the origin is rounded to f32 toward the side that makes each
+/// plane's distance smaller (near) or larger (far), so rounding never culls a true hit.
+struct RayF32 {
+    /// Row of `Node::bounds` holding the near / far plane on each axis.
+    near: [usize; 3],
+    far: [usize; 3],
+    o_near: [f32; 3],
+    o_far: [f32; 3],
+    inv: [f32; 3],
+}
+
+impl RayF32 {
+    #[inline(always)]
+    fn new(ray: &Ray) -> Option<RayF32> {
+        let mut r = RayF32 {
+            near: [0; 3],
+            far: [0; 3],
+            o_near: [0.0; 3],
+            o_far: [0.0; 3],
+            inv: [0.0; 3],
+        };
+        for a in 0..3 {
+            let (o, inv) = (ray.origin[a], ray.inv_dir[a]);
+            let ok = o.abs() < F32_SAFE && inv.abs() < F32_SAFE && inv.abs() > 1.0 / F32_SAFE;
+            if !ok {
+                return None;
+            }
+            let (lo, hi) = (round_down(o), round_up(o));
+            if inv >= 0.0 {
+                // Near plane is the minimum: (min - o) ≥ (min - hi); far (max - o) ≤ (max - lo).
+                r.near[a] = 2 * a;
+                r.far[a] = 2 * a + 1;
+                r.o_near[a] = hi;
+                r.o_far[a] = lo;
+            } else {
+                r.near[a] = 2 * a + 1;
+                r.far[a] = 2 * a;
+                r.o_near[a] = lo;
+                r.o_far[a] = hi;
+            }
+            r.inv[a] = inv as f32;
+        }
+        Some(r)
+    }
+
+    /// Hit mask and conservative entry distances of a node's four boxes.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    #[allow(unused_unsafe)]
+    fn hit4(&self, node: &Node, t_max: f64) -> (u32, [f32; 4]) {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE is part of the x86_64 baseline; loads read 16 bytes from [f32; 4] rows.
+        unsafe {
+            let b = &node.bounds;
+            let plane = |row: usize, o: f32, inv: f32| {
+                _mm_mul_ps(
+                    _mm_sub_ps(_mm_loadu_ps(b[row].as_ptr()), _mm_set1_ps(o)),
+                    _mm_set1_ps(inv),
+                )
+            };
+            let nx = plane(self.near[0], self.o_near[0], self.inv[0]);
+            let ny = plane(self.near[1], self.o_near[1], self.inv[1]);
+            let nz = plane(self.near[2], self.o_near[2], self.inv[2]);
+            let fx = plane(self.far[0], self.o_far[0], self.inv[0]);
+            let fy = plane(self.far[1], self.o_far[1], self.inv[1]);
+            let fz = plane(self.far[2], self.o_far[2], self.inv[2]);
+            let near = _mm_max_ps(_mm_max_ps(nx, ny), _mm_max_ps(nz, _mm_setzero_ps()));
+            let far = _mm_min_ps(
+                _mm_min_ps(fx, fy),
+                _mm_min_ps(fz, _mm_set1_ps(t_max_f32(t_max))),
+            );
+            let near = _mm_mul_ps(near, _mm_set1_ps(SLAB_DOWN));
+            let far = _mm_add_ps(_mm_mul_ps(far, _mm_set1_ps(SLAB_UP)), _mm_set1_ps(SLAB_ABS));
+            let mask = _mm_movemask_ps(_mm_cmple_ps(near, far)) as u32;
+            let mut dist = [0f32; 4];
+            _mm_storeu_ps(dist.as_mut_ptr(), near);
+            (mask, dist)
+        }
+    }
+
+    #[cfg(not(target_arch = "x86_64"))]
+    #[inline(always)]
+    fn hit4(&self, node: &Node, t_max: f64) -> (u32, [f32; 4]) {
+        let b = &node.bounds;
+        let t_max = t_max_f32(t_max);
+        let mut mask = 0;
+        let mut dist = [0f32; 4];
+        for c in 0..4 {
+            let mut near = 0f32;
+            let mut far = t_max;
+            for a in 0..3 {
+                let tn = (b[self.near[a]][c] - self.o_near[a]) * self.inv[a];
+                let tf = (b[self.far[a]][c] - self.o_far[a]) * self.inv[a];
+                near = if tn > near { tn } else { near };
+                far = if tf < far { tf } else { far };
+            }
+            let near = near * SLAB_DOWN;
+            let far = far * SLAB_UP + SLAB_ABS;
+            if near <= far {
+                mask |= 1 << c;
+            }
+            dist[c] = near;
+        }
+        (mask, dist)
+    }
+}
+
+/// `t_max` as f32; the slab margin covers its rounding.
+#[inline(always)]
+fn t_max_f32(t_max: f64) -> f32 {
+    t_max as f32
+}
+
+/// The slab test in f64 against a node's f32 boxes, for rays the f32 test cannot take.
+#[inline(always)]
+fn hit4_f64(node: &Node, ray: &Ray, t_max: f64) -> (u32, [f32; 4]) {
+    let b = &node.bounds;
+    let mut mask = 0;
+    let mut dist = [0f32; 4];
+    for c in 0..4 {
+        if node.index[c] == NO_CHILD {
+            continue;
+        }
+        let tx0 = (b[0][c] as f64 - ray.origin.x) * ray.inv_dir.x;
+        let tx1 = (b[1][c] as f64 - ray.origin.x) * ray.inv_dir.x;
+        let ty0 = (b[2][c] as f64 - ray.origin.y) * ray.inv_dir.y;
+        let ty1 = (b[3][c] as f64 - ray.origin.y) * ray.inv_dir.y;
+        let tz0 = (b[4][c] as f64 - ray.origin.z) * ray.inv_dir.z;
+        let tz1 = (b[5][c] as f64 - ray.origin.z) * ray.inv_dir.z;
+        let near = tx0.min(tx1).max(ty0.min(ty1)).max(tz0.min(tz1)).max(0.0);
+        let far = tx0.max(tx1).min(ty0.max(ty1)).min(tz0.max(tz1)).min(t_max);
+        if near <= far {
+            mask |= 1 << c;
+            dist[c] = round_down(near);
+        }
+    }
+    (mask, dist)
+}
+
+/// The largest f32 not above `v`.
+#[inline(always)]
+fn round_down(v: f64) -> f32 {
+    let f = v as f32;
+    if (f as f64) > v {
+        f.next_down()
     } else {
-        f64::INFINITY
+        f
+    }
+}
+
+/// The smallest f32 not below `v`.
+#[inline(always)]
+fn round_up(v: f64) -> f32 {
+    let f = v as f32;
+    if (f as f64) < v {
+        f.next_up()
+    } else {
+        f
     }
 }
 
@@ -212,44 +457,66 @@ fn to_f32_box(b: Aabb) -> [f32; 6] {
         ];
     }
     let b = b.padded();
-    let down = |v: f64| {
-        let f = v as f32;
-        if (f as f64) > v {
-            f.next_down()
-        } else {
-            f
-        }
-    };
-    let up = |v: f64| {
-        let f = v as f32;
-        if (f as f64) < v {
-            f.next_up()
-        } else {
-            f
-        }
-    };
     [
-        down(b.min.x),
-        down(b.min.y),
-        down(b.min.z),
-        up(b.max.x),
-        up(b.max.y),
-        up(b.max.z),
+        round_down(b.min.x),
+        round_down(b.min.y),
+        round_down(b.min.z),
+        round_up(b.max.x),
+        round_up(b.max.y),
+        round_up(b.max.z),
     ]
 }
 
-/// Appends the node holding `children` and, depth first, their subtrees; returns its index.
+/// Appends the 4-wide node that replaces the binary node with `children`: the binary tree is
+/// opened below it, largest interior child first, until it has four children. Subtrees follow
+/// depth first; returns the node's index.
 fn pack(children: &[Tree; 2], nodes: &mut Vec<Node>) -> u32 {
+    let mut slots: Vec<&Tree> = Vec::with_capacity(4);
+    slots.extend([&children[0], &children[1]]);
+    while slots.len() < 4 {
+        let widest = slots
+            .iter()
+            .enumerate()
+            .filter(|(_, t)| matches!(t, Tree::Interior { .. }))
+            .max_by(|(_, a), (_, b)| {
+                a.bounds()
+                    .surface_area()
+                    .total_cmp(&b.bounds().surface_area())
+            })
+            .map(|(i, _)| i);
+        let Some(i) = widest else { break };
+        let Tree::Interior { children, .. } = slots[i] else {
+            unreachable!()
+        };
+        slots[i] = &children[0];
+        slots.insert(i + 1, &children[1]);
+    }
+    pack_node(&slots, nodes)
+}
+
+fn pack_node(slots: &[&Tree], nodes: &mut Vec<Node>) -> u32 {
     let index = nodes.len();
-    nodes.push(Node {
+    let mut node = Node {
         bounds: [
-            to_f32_box(children[0].bounds()),
-            to_f32_box(children[1].bounds()),
+            [f32::INFINITY; 4],
+            [f32::NEG_INFINITY; 4],
+            [f32::INFINITY; 4],
+            [f32::NEG_INFINITY; 4],
+            [f32::INFINITY; 4],
+            [f32::NEG_INFINITY; 4],
         ],
-        index: [0; 2],
-        count: [0; 2],
-    });
-    for (c, child) in children.iter().enumerate() {
+        index: [NO_CHILD; 4],
+        count: [0; 4],
+    };
+    for (c, child) in slots.iter().enumerate() {
+        let b = to_f32_box(child.bounds());
+        for a in 0..3 {
+            node.bounds[2 * a][c] = b[a];
+            node.bounds[2 * a + 1][c] = b[a + 3];
+        }
+    }
+    nodes.push(node);
+    for (c, child) in slots.iter().enumerate() {
         let (child_index, count) = match child {
             Tree::Leaf { first, count, .. } => (*first, *count),
             Tree::Interior { children, .. } => (pack(children, nodes), 0),
@@ -270,51 +537,117 @@ struct Split {
     axis: usize,
     lo: f64,
     scale: f64,
+    bins: usize,
     bin: usize,
+    /// The children's bounds, from the bins.
+    left: Aabb,
+    right: Aabb,
 }
 
 impl Split {
+    #[inline(always)]
     fn goes_left(&self, centroid: f64) -> bool {
-        bin_of(centroid, self.lo, self.scale) < self.bin
+        bin_of(centroid, self.lo, self.scale, self.bins) < self.bin
     }
 }
 
-impl Builder<'_> {
-    fn build(&self, prims: &mut [u32], first: usize, depth: usize) -> Tree {
-        let mut bounds = Aabb::EMPTY;
-        let mut centroid_bounds = Aabb::EMPTY;
-        for &p in prims.iter() {
-            bounds = bounds.union(self.bounds[p as usize]);
-            centroid_bounds = centroid_bounds.grow(self.centroids[p as usize]);
+/// Per axis and bin: the union of the primitives' bounds (min x, y, z, max x, y, z) and
+/// their number.
+#[derive(Clone)]
+struct Bins {
+    bounds: [[[f64; 6]; BINS]; 3],
+    counts: [[u32; BINS]; 3],
+}
+
+const EMPTY_BOX: [f64; 6] = [
+    f64::INFINITY,
+    f64::INFINITY,
+    f64::INFINITY,
+    f64::NEG_INFINITY,
+    f64::NEG_INFINITY,
+    f64::NEG_INFINITY,
+];
+
+/// `acc` grown by `b`. Written so that it compiles to plain min/max instructions; like
+/// `f64::min`, a NaN in `b` leaves `acc` as it was.
+#[inline(always)]
+fn grow_box(acc: &mut [f64; 6], b: &[f64; 6]) {
+    for i in 0..3 {
+        acc[i] = if b[i] < acc[i] { b[i] } else { acc[i] };
+        acc[i + 3] = if b[i + 3] > acc[i + 3] {
+            b[i + 3]
+        } else {
+            acc[i + 3]
+        };
+    }
+}
+
+fn to_aabb(b: &[f64; 6]) -> Aabb {
+    Aabb {
+        min: DVec3::new(b[0], b[1], b[2]),
+        max: DVec3::new(b[3], b[4], b[5]),
+    }
+}
+
+impl Bins {
+    fn empty() -> Bins {
+        Bins {
+            bounds: [[EMPTY_BOX; BINS]; 3],
+            counts: [[0; BINS]; 3],
         }
+    }
+
+    /// Exact (min, max and integer sums), so any grouping of the merges gives the same bins.
+    fn merge(mut self, o: Bins) -> Bins {
+        for axis in 0..3 {
+            for bin in 0..BINS {
+                grow_box(&mut self.bounds[axis][bin], &o.bounds[axis][bin]);
+                self.counts[axis][bin] += o.counts[axis][bin];
+            }
+        }
+        self
+    }
+}
+
+/// Nodes at least this large bin their primitives in parallel chunks.
+const PARALLEL_BINNING: usize = 16 * 1024;
+
+impl Builder<'_> {
+    /// `bounds` and `centroid_bounds` are those of `prims`, found by the caller.
+    fn build(
+        &self,
+        prims: &mut [u32],
+        first: usize,
+        depth: usize,
+        bounds: Aabb,
+        centroid_bounds: Aabb,
+    ) -> Tree {
         let leaf = Tree::Leaf {
             bounds,
             first: first as u32,
             count: prims.len() as u32,
         };
         // The depth cap keeps traversal's fixed stack from overflowing on adversarial input.
-        if prims.len() <= 1 || depth + 2 >= STACK_DEPTH {
+        if prims.len() <= 1 || depth + 2 >= MAX_DEPTH {
             return leaf;
         }
         let Some(split) = self.find_split(prims, bounds, centroid_bounds) else {
             return leaf;
         };
-        let mid = partition(prims, |&p| {
-            split.goes_left(self.centroids[p as usize][split.axis])
-        });
+        let (mid, left_centroids, right_centroids) = self.partition(prims, &split);
         if mid == 0 || mid == prims.len() {
             return leaf;
         }
         let (left, right) = prims.split_at_mut(mid);
         let (l, r) = if prims_len(left, right) >= PARALLEL_THRESHOLD {
             rayon::join(
-                || self.build(left, first, depth + 1),
-                || self.build(right, first + mid, depth + 1),
+                || self.build(left, first, depth + 1, split.left, left_centroids),
+                || self.build(right, first + mid, depth + 1, split.right, right_centroids),
             )
         } else {
             (
-                self.build(left, first, depth + 1),
-                self.build(right, first + mid, depth + 1),
+                self.build(left, first, depth + 1, split.left, left_centroids),
+                self.build(right, first + mid, depth + 1, split.right, right_centroids),
             )
         };
         Tree::Interior {
@@ -323,72 +656,72 @@ impl Builder<'_> {
         }
     }
 
+    fn bin(&self, prims: &[u32], lo: DVec3, scale: DVec3, bins: usize) -> Bins {
+        if prims.len() >= PARALLEL_BINNING {
+            return prims
+                .par_chunks(PARALLEL_BINNING / 2)
+                .map(|chunk| self.bin(chunk, lo, scale, bins))
+                .reduce(Bins::empty, Bins::merge);
+        }
+        let mut out = Bins::empty();
+        for &p in prims {
+            let c = self.centroids[p as usize];
+            let b = self.bounds[p as usize];
+            let b = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
+            for axis in 0..3 {
+                let bin = bin_of(c[axis], lo[axis], scale[axis], bins);
+                out.counts[axis][bin] += 1;
+                grow_box(&mut out.bounds[axis][bin], &b);
+            }
+        }
+        out
+    }
+
     /// The cheapest binned SAH split over all three axes (binned in one pass), or None when
     /// a leaf is cheaper and small enough.
     fn find_split(&self, prims: &[u32], bounds: Aabb, centroid_bounds: Aabb) -> Option<Split> {
         let extent = centroid_bounds.extent();
         let lo = centroid_bounds.min;
-        let scale = DVec3::new(
-            if extent.x > 0.0 {
-                BINS as f64 / extent.x
-            } else {
-                0.0
-            },
-            if extent.y > 0.0 {
-                BINS as f64 / extent.y
-            } else {
-                0.0
-            },
-            if extent.z > 0.0 {
-                BINS as f64 / extent.z
-            } else {
-                0.0
-            },
-        );
-        let mut bin_bounds = [[Aabb::EMPTY; BINS]; 3];
-        let mut bin_counts = [[0usize; BINS]; 3];
-        for &p in prims {
-            let c = self.centroids[p as usize];
-            let b = self.bounds[p as usize];
-            for axis in 0..3 {
-                let bin = bin_of(c[axis], lo[axis], scale[axis]);
-                bin_counts[axis][bin] += 1;
-                bin_bounds[axis][bin] = bin_bounds[axis][bin].union(b);
-            }
-        }
-        let mut best: Option<(f64, usize, usize)> = None;
+        // Small nodes use fewer bins: as good a split for far less sweeping.
+        let nbins = prims.len().clamp(2, BINS);
+        let per = |e: f64| if e > 0.0 { nbins as f64 / e } else { 0.0 };
+        let scale = DVec3::new(per(extent.x), per(extent.y), per(extent.z));
+        let bins = self.bin(prims, lo, scale, nbins);
+        let mut best: Option<(f64, usize, usize, Aabb, Aabb)> = None;
         for axis in 0..3 {
-            if extent[axis] <= 0.0 || extent[axis].is_nan() {
+            // NaN extents are skipped too.
+            let usable = extent[axis] > 0.0;
+            if !usable {
                 continue;
             }
-            let (boxes, counts) = (&bin_bounds[axis], &bin_counts[axis]);
-            // Sweep from the right for each suffix's area and count, then from the left.
-            let mut right_area = [0.0; BINS];
+            let (boxes, counts) = (&bins.bounds[axis], &bins.counts[axis]);
+            // Sweep from the right for each suffix's box and count, then from the left.
+            let mut right_box = [EMPTY_BOX; BINS];
             let mut right_count = [0usize; BINS];
-            let mut acc = Aabb::EMPTY;
+            let mut acc = EMPTY_BOX;
             let mut count = 0;
-            for i in (1..BINS).rev() {
-                acc = acc.union(boxes[i]);
-                count += counts[i];
-                right_area[i] = acc.surface_area();
+            for i in (1..nbins).rev() {
+                grow_box(&mut acc, &boxes[i]);
+                count += counts[i] as usize;
+                right_box[i] = acc;
                 right_count[i] = count;
             }
-            let mut acc = Aabb::EMPTY;
+            let mut acc = EMPTY_BOX;
             let mut count = 0;
-            for split in 1..BINS {
-                acc = acc.union(boxes[split - 1]);
-                count += counts[split - 1];
+            for split in 1..nbins {
+                grow_box(&mut acc, &boxes[split - 1]);
+                count += counts[split - 1] as usize;
                 if count == 0 || right_count[split] == 0 {
                     continue;
                 }
-                let cost = acc.surface_area() * count as f64
-                    + right_area[split] * right_count[split] as f64;
-                if best.is_none_or(|(c, _, _)| cost < c) {
-                    best = Some((cost, axis, split));
+                let cost =
+                    area(&acc) * count as f64 + area(&right_box[split]) * right_count[split] as f64;
+                if best.is_none_or(|(c, ..)| cost < c) {
+                    best = Some((cost, axis, split, to_aabb(&acc), to_aabb(&right_box[split])));
                 }
             }
         }
-        let (cost, axis, bin) = best?;
+        let (cost, axis, bin, left, right) = best?;
         let split_cost =
             TRAVERSAL_COST + INTERSECT_COST * cost / bounds.surface_area().max(f64::MIN_POSITIVE);
         let leaf_cost = INTERSECT_COST * prims.len() as f64;
@@ -399,8 +732,29 @@ impl Builder<'_> {
             axis,
             lo: lo[axis],
             scale: scale[axis],
+            bins: nbins,
             bin,
+            left,
+            right,
         })
+    }
+
+    /// In-place partition by `split`; returns the number of primitives going left and the
+    /// centroid bounds of both sides.
+    fn partition(&self, prims: &mut [u32], split: &Split) -> (usize, Aabb, Aabb) {
+        let (mut left, mut right) = (Aabb::EMPTY, Aabb::EMPTY);
+        let mut i = 0;
+        for j in 0..prims.len() {
+            let c = self.centroids[prims[j] as usize];
+            if split.goes_left(c[split.axis]) {
+                left = left.grow(c);
+                prims.swap(i, j);
+                i += 1;
+            } else {
+                right = right.grow(c);
+            }
+        }
+        (i, left, right)
     }
 }
 
@@ -408,21 +762,16 @@ fn prims_len(a: &[u32], b: &[u32]) -> usize {
     a.len().min(b.len())
 }
 
-#[inline]
-fn bin_of(c: f64, lo: f64, scale: f64) -> usize {
-    (((c - lo) * scale) as usize).min(BINS - 1)
+#[inline(always)]
+fn bin_of(c: f64, lo: f64, scale: f64, bins: usize) -> usize {
+    (((c - lo) * scale) as usize).min(bins - 1)
 }
 
-/// In-place partition; returns the number of elements for which `left` holds.
-fn partition(items: &mut [u32], left: impl Fn(&u32) -> bool) -> usize {
-    let mut i = 0;
-    for j in 0..items.len() {
-        if left(&items[j]) {
-            items.swap(i, j);
-            i += 1;
-        }
-    }
-    i
+/// Surface area of a non-empty box (the sweeps only measure boxes holding primitives).
+#[inline(always)]
+fn area(b: &[f64; 6]) -> f64 {
+    let (x, y, z) = (b[3] - b[0], b[4] - b[1], b[5] - b[2]);
+    2.0 * (x * y + y * z + z * x)
 }
 
 #[cfg(test)]
@@ -453,7 +802,13 @@ mod tests {
     fn leaves(bvh: &Bvh) -> Vec<([f32; 6], u32, u32)> {
         bvh.nodes
             .iter()
-            .flat_map(|n| (0..2).map(move |c| (n.bounds[c], n.index[c], n.count[c])))
+            .flat_map(|n| {
+                (0..4).map(move |c| {
+                    let b = n.bounds;
+                    let aabb = [b[0][c], b[2][c], b[4][c], b[1][c], b[3][c], b[5][c]];
+                    (aabb, n.index[c], n.count[c])
+                })
+            })
             .filter(|(_, _, count)| *count > 0)
             .collect()
     }
@@ -502,9 +857,91 @@ mod tests {
                 }
                 false
             });
+            let mut found_any = Vec::new();
+            bvh.traverse_any(&ray, &mut f64::INFINITY.clone(), |range, _| {
+                for slot in range {
+                    let p = bvh.order[slot] as usize;
+                    if prims[p].hit(&ray, f64::INFINITY).is_some() {
+                        found_any.push(p);
+                    }
+                }
+                false
+            });
             expected.sort();
             found.sort();
+            found_any.sort();
             assert_eq!(found, expected);
+            assert_eq!(found_any, expected);
+        }
+    }
+
+    #[test]
+    fn f32_traversal_never_culls_a_box_hit_at_any_scale() {
+        let mut state = 987654321u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for (scale, offset) in [
+            (1e-4, 0.0),
+            (1e-4, 3.7),
+            (1.0, -2.0),
+            (1e5, 1e5),
+            (0.01, 1e4),
+        ] {
+            let prims: Vec<Aabb> = (0..500)
+                .map(|_| {
+                    let c = DVec3::new(next(), next(), next()) * 10.0 * scale + offset;
+                    let e = DVec3::new(next(), next(), next()) * 0.3 * scale;
+                    Aabb {
+                        min: c - e,
+                        max: c + e,
+                    }
+                })
+                .collect();
+            let bvh = Bvh::build(&prims);
+            for i in 0..400 {
+                // Aim at a corner, an edge or a face point of some box, from near and far.
+                let target = prims[i % prims.len()];
+                let pick = |k: f64, a: f64, b: f64| {
+                    if k < 0.33 {
+                        a
+                    } else if k < 0.66 {
+                        b
+                    } else {
+                        a + (b - a) * k
+                    }
+                };
+                let aim = DVec3::new(
+                    pick(next(), target.min.x, target.max.x),
+                    pick(next(), target.min.y, target.max.y),
+                    pick(next(), target.min.z, target.max.z),
+                );
+                let dist = scale * 10f64.powf(next() * 4.0 - 1.0);
+                let mut dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
+                if i % 7 == 0 {
+                    dir.x = 0.0; // axis-parallel rays take the f64 test
+                }
+                let origin = aim - dir * dist;
+                let ray = Ray::new(origin, dir);
+                let t_max = if i % 2 == 0 { f64::INFINITY } else { dist };
+                let expected: Vec<usize> = (0..prims.len())
+                    .filter(|&p| prims[p].hit(&ray, t_max).is_some())
+                    .collect();
+                let mut found = vec![false; prims.len()];
+                let mut limit = t_max;
+                bvh.traverse(&ray, &mut limit, |range, _| {
+                    for slot in range {
+                        found[bvh.order[slot] as usize] = true;
+                    }
+                    false
+                });
+                for p in expected {
+                    assert!(found[p], "scale {scale}: box {p} culled for ray {i}");
+                }
+            }
         }
     }
 
