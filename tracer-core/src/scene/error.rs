@@ -11,7 +11,12 @@ pub struct SceneError {
 }
 
 impl SceneError {
-    pub fn new(file: impl Into<String>, line: u32, column: u32, message: impl Into<String>) -> Self {
+    pub fn new(
+        file: impl Into<String>,
+        line: u32,
+        column: u32,
+        message: impl Into<String>,
+    ) -> Self {
         Self {
             file: file.into(),
             line,

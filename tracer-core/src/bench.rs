@@ -1,0 +1,157 @@
+//! Ray-throughput measurements behind `tracer bench`: BVH build time, closest-hit rays
+//! (coherent primary and incoherent), any-hit shadow rays and a full 1-spp render.
+
+use std::time::{Duration, Instant};
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::geometry::Ray;
+use crate::render::Renderer;
+use crate::sampler::Rng;
+use crate::scene::Scene;
+use crate::settings::RenderSettings;
+use crate::shade::{spawn_ray, uniform_sphere};
+
+#[derive(Clone, Debug, Serialize)]
+pub struct BenchReport {
+    pub build_ms: f64,
+    pub primary_mrays: f64,
+    pub incoherent_mrays: f64,
+    pub shadow_mrays: f64,
+    pub render_s: f64,
+    #[serde(skip)]
+    pub primary_rays: usize,
+    #[serde(skip)]
+    pub secondary_rays: usize,
+}
+
+/// Rays per parallel work item: large enough to amortise scheduling, small enough to balance.
+const CHUNK: usize = 1024;
+
+/// Runs every measurement `repeats` times and keeps the fastest (least disturbed) run.
+pub fn run(
+    scene: &Scene,
+    settings: &RenderSettings,
+    repeats: usize,
+) -> Result<BenchReport, String> {
+    let repeats = repeats.max(1);
+    let renderer = Renderer::new(scene, settings)?;
+    let camera = renderer.camera();
+    let (w, h) = (settings.width, settings.height);
+
+    let build = best_of(repeats, || {
+        let started = Instant::now();
+        std::hint::black_box(scene.world.rebuilt());
+        started.elapsed()
+    });
+
+    let primary: Vec<Ray> = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| camera.ray(x as f64 + 0.5, y as f64 + 0.5, w as f64, h as f64))
+        .collect();
+    let (near, far) = (camera.near, camera.far);
+    let primary_time = best_of(repeats, || {
+        time_rays(&primary, |ray| {
+            scene.world.intersect(ray, near, far).is_some()
+        })
+    });
+
+    // Secondary rays start at every primary hit, offset as the shader would.
+    let hits: Vec<(u32, crate::world::Surface, f64)> = primary
+        .par_iter()
+        .enumerate()
+        .filter_map(|(i, ray)| {
+            let hit = scene.world.intersect(ray, near, far)?;
+            let s = scene.world.surface(
+                ray,
+                &hit,
+                &scene.materials,
+                &scene.textures,
+                settings.texture_filter,
+            );
+            Some((i as u32, s, s.position.abs().max_element() + hit.t))
+        })
+        .collect();
+    let incoherent: Vec<Ray> = hits
+        .iter()
+        .map(|(i, s, scale)| {
+            let mut rng = Rng::for_sample(settings.seed, i % w, i / w, 0);
+            let dir = uniform_sphere(rng.next_f64(), rng.next_f64());
+            spawn_ray(s.position, s.geometric_normal, dir, *scale)
+        })
+        .collect();
+    let incoherent_time = best_of(repeats, || {
+        time_rays(&incoherent, |ray| {
+            scene.world.intersect(ray, 0.0, f64::INFINITY).is_some()
+        })
+    });
+
+    let shadow_time = match scene.lights.first() {
+        Some(light) => {
+            let shadow: Vec<(Ray, f64)> = hits
+                .iter()
+                .filter_map(|(_, s, scale)| {
+                    let to_light = light.position - s.position;
+                    let d = to_light.length();
+                    (d > 0.0).then(|| {
+                        let ray = spawn_ray(s.position, s.geometric_normal, to_light / d, *scale);
+                        let len = (light.position - ray.origin).length();
+                        (ray, len)
+                    })
+                })
+                .collect();
+            let t = best_of(repeats, || {
+                let started = Instant::now();
+                let blocked: usize = shadow
+                    .par_chunks(CHUNK)
+                    .map(|c| {
+                        c.iter()
+                            .filter(|(r, len)| scene.world.occluded(r, *len))
+                            .count()
+                    })
+                    .sum();
+                std::hint::black_box(blocked);
+                started.elapsed()
+            });
+            Some((shadow.len(), t))
+        }
+        None => None,
+    };
+
+    let one_spp = RenderSettings {
+        spp: 1,
+        ..settings.clone()
+    };
+    let render = best_of(repeats, || {
+        let r = Renderer::new(scene, &one_spp).expect("validated above");
+        let started = Instant::now();
+        std::hint::black_box(r.render_image(&|_, _| {}));
+        started.elapsed()
+    });
+
+    let mrays = |n: usize, t: Duration| n as f64 / t.as_secs_f64() / 1e6;
+    Ok(BenchReport {
+        build_ms: build.as_secs_f64() * 1e3,
+        primary_mrays: mrays(primary.len(), primary_time),
+        incoherent_mrays: mrays(incoherent.len(), incoherent_time),
+        shadow_mrays: shadow_time.map_or(0.0, |(n, t)| mrays(n, t)),
+        render_s: render.as_secs_f64(),
+        primary_rays: primary.len(),
+        secondary_rays: incoherent.len(),
+    })
+}
+
+fn time_rays(rays: &[Ray], trace: impl Fn(&Ray) -> bool + Sync) -> Duration {
+    let started = Instant::now();
+    let hits: usize = rays
+        .par_chunks(CHUNK)
+        .map(|c| c.iter().filter(|r| trace(r)).count())
+        .sum();
+    std::hint::black_box(hits);
+    started.elapsed()
+}
+
+fn best_of(repeats: usize, mut run: impl FnMut() -> Duration) -> Duration {
+    (0..repeats).map(|_| run()).min().unwrap_or_default()
+}

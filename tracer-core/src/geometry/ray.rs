@@ -1,0 +1,79 @@
+use glam::DVec3;
+
+/// A ray with its precomputed inverse direction for slab tests.
+#[derive(Clone, Copy, Debug)]
+pub struct Ray {
+    pub origin: DVec3,
+    pub dir: DVec3,
+    pub inv_dir: DVec3,
+}
+
+impl Ray {
+    pub fn new(origin: DVec3, dir: DVec3) -> Self {
+        // A zero component would give 1/0 = inf, and inf·0 = NaN in the slab test when the origin
+        // lies on a slab plane; a huge finite reciprocal keeps the test well defined.
+        let safe = |d: f64| {
+            if d.abs() < 1e-300 {
+                if d.is_sign_negative() {
+                    -1e300
+                } else {
+                    1e300
+                }
+            } else {
+                1.0 / d
+            }
+        };
+        let inv_dir = DVec3::new(safe(dir.x), safe(dir.y), safe(dir.z));
+        debug_assert!(
+            inv_dir.is_finite(),
+            "ray direction {dir} gives a non-finite inverse"
+        );
+        Self {
+            origin,
+            dir,
+            inv_dir,
+        }
+    }
+
+    pub fn at(&self, t: f64) -> DVec3 {
+        self.origin + t * self.dir
+    }
+}
+
+/// Per-ray constants of the watertight triangle test (Woop, Benthin, Wald 2013): the axis the
+/// direction is largest along becomes z, and the shear maps the direction onto +z.
+#[derive(Clone, Copy, Debug)]
+pub struct TriangleRay {
+    pub origin: DVec3,
+    pub kx: usize,
+    pub ky: usize,
+    pub kz: usize,
+    pub shear: DVec3,
+}
+
+impl TriangleRay {
+    pub fn new(ray: &Ray) -> Self {
+        let a = ray.dir.abs();
+        let kz = if a.x >= a.y && a.x >= a.z {
+            0
+        } else if a.y >= a.z {
+            1
+        } else {
+            2
+        };
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
+        // Keep the winding: swapping x and y when dir.z < 0 preserves the edge-function signs.
+        if ray.dir[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        let dz = ray.dir[kz];
+        Self {
+            origin: ray.origin,
+            kx,
+            ky,
+            kz,
+            shear: DVec3::new(ray.dir[kx] / dz, ray.dir[ky] / dz, 1.0 / dz),
+        }
+    }
+}

@@ -1,0 +1,146 @@
+//! PNG textures: 8-bit RGB held bottom row first, sampled with repeat wrap (conventions §5).
+
+use glam::{DVec2, DVec3};
+
+use crate::settings::TextureFilter;
+
+#[derive(Clone, Debug)]
+pub struct Texture {
+    width: u32,
+    height: u32,
+    /// RGB texels, row 0 at the **bottom** of the image.
+    texels: Vec<[u8; 3]>,
+}
+
+impl Texture {
+    /// Decodes a PNG; alpha, gamma and colour-profile chunks are ignored, as in the course.
+    pub fn decode_png(bytes: &[u8]) -> Result<Texture, String> {
+        let image = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+            .map_err(|e| format!("cannot decode PNG: {e}"))?
+            .to_rgb8();
+        let (width, height) = image.dimensions();
+        if width == 0 || height == 0 {
+            return Err("the PNG has no pixels".into());
+        }
+        let mut texels = Vec::with_capacity(width as usize * height as usize);
+        for row in image.rows().rev() {
+            texels.extend(row.map(|p| p.0));
+        }
+        Ok(Texture {
+            width,
+            height,
+            texels,
+        })
+    }
+
+    /// Builds a texture from bottom-first texels (tests and generated textures).
+    pub fn from_texels(width: u32, height: u32, texels: Vec<[u8; 3]>) -> Texture {
+        assert_eq!(texels.len(), width as usize * height as usize);
+        Texture {
+            width,
+            height,
+            texels,
+        }
+    }
+
+    fn texel(&self, x: u32, y: u32) -> DVec3 {
+        let [r, g, b] = self.texels[y as usize * self.width as usize + x as usize];
+        DVec3::new(r as f64, g as f64, b as f64) / 255.0
+    }
+
+    /// The colour at `uv`, (0,0) at the bottom-left, repeating outside [0,1).
+    pub fn sample(&self, uv: DVec2, filter: TextureFilter) -> DVec3 {
+        let u = wrap(uv.x);
+        let v = wrap(uv.y);
+        let (w, h) = (self.width as f64, self.height as f64);
+        match filter {
+            TextureFilter::Nearest => {
+                // min() guards u == 1.0, which wrap() can produce after round-off.
+                let x = ((u * w) as u32).min(self.width - 1);
+                let y = ((v * h) as u32).min(self.height - 1);
+                self.texel(x, y)
+            }
+            TextureFilter::Bilinear => {
+                let sx = u * w - 0.5;
+                let sy = v * h - 0.5;
+                let (fx, fy) = (sx.floor(), sy.floor());
+                let (tx, ty) = (sx - fx, sy - fy);
+                let x0 = (fx as i64).rem_euclid(self.width as i64) as u32;
+                let y0 = (fy as i64).rem_euclid(self.height as i64) as u32;
+                let x1 = (x0 + 1) % self.width;
+                let y1 = (y0 + 1) % self.height;
+                let bottom = self.texel(x0, y0).lerp(self.texel(x1, y0), tx);
+                let top = self.texel(x0, y1).lerp(self.texel(x1, y1), tx);
+                bottom.lerp(top, ty)
+            }
+        }
+    }
+}
+
+/// Repeat wrap into [0, 1]; non-finite coordinates map to 0 rather than poisoning the lookup.
+fn wrap(t: f64) -> f64 {
+    if !t.is_finite() {
+        return 0.0;
+    }
+    t - t.floor()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 2×2: bottom row red, green; top row blue, white.
+    fn checker() -> Texture {
+        Texture::from_texels(
+            2,
+            2,
+            vec![[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]],
+        )
+    }
+
+    #[test]
+    fn origin_is_bottom_left() {
+        let t = checker();
+        assert_eq!(
+            t.sample(DVec2::new(0.0, 0.0), TextureFilter::Nearest),
+            DVec3::X
+        );
+        assert_eq!(
+            t.sample(DVec2::new(0.75, 0.25), TextureFilter::Nearest),
+            DVec3::Y
+        );
+        assert_eq!(
+            t.sample(DVec2::new(0.25, 0.75), TextureFilter::Nearest),
+            DVec3::Z
+        );
+    }
+
+    #[test]
+    fn coordinates_wrap_and_one_is_guarded() {
+        let t = checker();
+        let n = TextureFilter::Nearest;
+        assert_eq!(
+            t.sample(DVec2::new(1.25, -0.75), n),
+            t.sample(DVec2::new(0.25, 0.25), n)
+        );
+        assert_eq!(t.sample(DVec2::new(500.0, 500.0), n), DVec3::X);
+        // 1.0 wraps to 0.0; one ulp below it must clamp to the last texel, not index past it.
+        let below_one = 1.0 - f64::EPSILON / 2.0;
+        assert_eq!(t.sample(DVec2::new(below_one, below_one), n), DVec3::ONE);
+        assert_eq!(t.sample(DVec2::new(f64::NAN, f64::INFINITY), n), DVec3::X);
+    }
+
+    #[test]
+    fn bilinear_blends_neighbours_with_wrap() {
+        let t = checker();
+        let b = TextureFilter::Bilinear;
+        // Texel centres give the texel itself.
+        assert!((t.sample(DVec2::new(0.25, 0.25), b) - DVec3::X).length() < 1e-12);
+        // Midway between red and green horizontally.
+        let mid = t.sample(DVec2::new(0.5, 0.25), b);
+        assert!((mid - DVec3::new(0.5, 0.5, 0.0)).length() < 1e-12);
+        // At u = 0 the left neighbour wraps around to the right column.
+        let edge = t.sample(DVec2::new(0.0, 0.25), b);
+        assert!((edge - DVec3::new(0.5, 0.5, 0.0)).length() < 1e-12);
+    }
+}
