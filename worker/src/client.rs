@@ -102,12 +102,12 @@ impl Client {
         &self.base
     }
 
+    /// A request to `path` under [`API_PREFIX`].
     fn request(&self, method: Method, path: &str) -> RequestBuilder {
-        let url = if path.starts_with('/') && !path.starts_with(API_PREFIX) {
-            format!("{}{path}", self.base)
-        } else {
-            format!("{}{API_PREFIX}{path}", self.base)
-        };
+        self.request_url(method, format!("{}{API_PREFIX}{path}", self.base))
+    }
+
+    fn request_url(&self, method: Method, url: String) -> RequestBuilder {
         let mut req = self
             .http
             .request(method, url)
@@ -149,7 +149,8 @@ impl Client {
     }
 
     pub async fn healthz(&self) -> Result<()> {
-        Self::check(self.request(Method::GET, "/healthz").send().await?).await?;
+        let req = self.request_url(Method::GET, format!("{}/healthz", self.base));
+        Self::check(req.send().await?).await?;
         Ok(())
     }
 
@@ -238,7 +239,9 @@ impl Client {
         };
         let spec =
             serde_json::to_vec(&sub.spec).map_err(|e| ClientError::Protocol(e.to_string()))?;
+        // Part names are asset paths, sent as written (the default encoding mangles '/').
         let mut form = reqwest::multipart::Form::new()
+            .percent_encode_noop()
             .part(
                 PART_JOB,
                 reqwest::multipart::Part::bytes(spec).mime_str("application/json")?,

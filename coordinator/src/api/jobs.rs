@@ -87,6 +87,7 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
         .map_err(|e| multipart_error(e, limit))?
     {
         let name = field.name().unwrap_or_default().to_string();
+        tracing::debug!("submission part {name:?} ({:?})", field.file_name());
         let file_name = field.file_name().map(str::to_string);
         let is_ref = field.content_type() == Some(CONTENT_TYPE_BLOB_REF);
         let bytes = field.bytes().await.map_err(|e| multipart_error(e, limit))?;

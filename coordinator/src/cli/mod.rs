@@ -62,9 +62,9 @@ pub struct SettingsArgs {
     /// Camera up vector x,y,z [default: 0,1,0].
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     pub up: Option<[f64; 3]>,
-    /// Texture filtering: nearest or bilinear [default: nearest].
-    #[arg(long, value_parser = parse_filter)]
-    pub texture_filter: Option<TextureFilter>,
+    /// Bilinear texture filtering instead of nearest texel.
+    #[arg(long)]
+    pub bilinear: bool,
     /// Tile edge in pixels.
     #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
     pub tile_size: u32,
@@ -94,7 +94,11 @@ impl SettingsArgs {
                 max_depth: self.depth.unwrap_or(d.max_depth),
                 seed: self.seed.unwrap_or(d.seed),
                 camera,
-                texture_filter: self.texture_filter.unwrap_or(d.texture_filter),
+                texture_filter: if self.bilinear {
+                    TextureFilter::Bilinear
+                } else {
+                    d.texture_filter
+                },
             },
             tile_size: self.tile_size,
         })
@@ -114,14 +118,6 @@ fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
             .map_err(|_| format!("{part:?} is not a number"))?;
     }
     Ok(v)
-}
-
-fn parse_filter(s: &str) -> Result<TextureFilter, String> {
-    match s {
-        "nearest" => Ok(TextureFilter::Nearest),
-        "bilinear" => Ok(TextureFilter::Bilinear),
-        _ => Err(format!("{s:?} is not nearest or bilinear")),
-    }
 }
 
 /// Runs the parsed command line.

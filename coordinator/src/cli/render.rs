@@ -117,41 +117,7 @@ fn render(args: RenderArgs) -> Result<(), String> {
             handles.push(tokio::spawn(async move { worker.run(shutdown).await }));
         }
 
-        let job = client.submit(&submission).await.map_err(|e| describe(&e))?;
-        eprintln!(
-            "rendering {} at {}x{}, {} spp: {} tiles on {workers} worker(s), {threads} thread(s)",
-            job.scene_file,
-            job.spec.render.width,
-            job.spec.render.height,
-            job.spec.render.spp,
-            job.tiles_total
-        );
-        let finished = tokio::select! {
-            done = wait_for(&client, job.id, Duration::from_millis(20)) => {
-                done.map_err(|e| describe(&e))?
-            }
-            _ = super::stop_signal() => {
-                let _ = client.cancel(job.id).await;
-                return Err("interrupted; the job was cancelled".to_string());
-            }
-        };
-        let result = match finished.state {
-            JobState::Done => {
-                let png = client.image(job.id).await.map_err(|e| describe(&e))?;
-                super::write_png(&output, &png)?;
-                eprintln!(
-                    "wrote {} in {:.2}s",
-                    output.display(),
-                    start.elapsed().as_secs_f64()
-                );
-                Ok(())
-            }
-            JobState::Failed => Err(format!(
-                "the render failed: {}",
-                finished.error.unwrap_or_default()
-            )),
-            other => Err(format!("the job ended {}", other.as_str())),
-        };
+        let result = submit_and_wait(&client, &submission, &output, workers, threads, start).await;
         let _ = stop_workers.send(true);
         for handle in handles {
             let _ = handle.await;
@@ -160,4 +126,51 @@ fn render(args: RenderArgs) -> Result<(), String> {
         let _ = server.await;
         result
     })
+}
+
+/// Submits the scene to the in-process farm, waits for it with a progress bar and writes the
+/// PNG. Ctrl-C cancels the job.
+async fn submit_and_wait(
+    client: &Client,
+    submission: &worker::Submission,
+    output: &std::path::Path,
+    workers: usize,
+    threads: usize,
+    start: Instant,
+) -> Result<(), String> {
+    let job = client.submit(submission).await.map_err(|e| describe(&e))?;
+    eprintln!(
+        "rendering {} at {}x{}, {} spp: {} tiles on {workers} worker(s), {threads} thread(s)",
+        job.scene_file,
+        job.spec.render.width,
+        job.spec.render.height,
+        job.spec.render.spp,
+        job.tiles_total
+    );
+    let finished = tokio::select! {
+        done = wait_for(client, job.id, Duration::from_millis(20)) => {
+            done.map_err(|e| describe(&e))?
+        }
+        _ = super::stop_signal() => {
+            let _ = client.cancel(job.id).await;
+            return Err("interrupted; the job was cancelled".to_string());
+        }
+    };
+    match finished.state {
+        JobState::Done => {
+            let png = client.image(job.id).await.map_err(|e| describe(&e))?;
+            super::write_png(output, &png)?;
+            eprintln!(
+                "wrote {} in {:.2}s",
+                output.display(),
+                start.elapsed().as_secs_f64()
+            );
+            Ok(())
+        }
+        JobState::Failed => Err(format!(
+            "the render failed: {}",
+            finished.error.unwrap_or_default()
+        )),
+        other => Err(format!("the job ended {}", other.as_str())),
+    }
 }
