@@ -3,10 +3,15 @@
 
 use std::collections::HashMap;
 
-use axum::extract::{Multipart, Path, State};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use axum::body::{Body, Bytes};
+use axum::extract::{FromRequest, Multipart, Path, Request, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use futures_util::StreamExt;
 use tracer_core::scene::SceneDescription;
 use tracer_core::{MemoryAssets, Scene, SceneError};
 use worker::protocol::{
@@ -57,19 +62,66 @@ fn scene_file_name(raw: Option<&str>) -> String {
         .to_string()
 }
 
-pub async fn submit(State(app): AppState, multipart: Multipart) -> Response {
+/// Feeds the request body to the multipart parser up to the upload limit, and keeps reading
+/// (discarding) past it, or after the handler stopped reading, up to a hard cap. A client
+/// still sending its body when the error answer goes out would otherwise see its connection
+/// reset instead of the 4xx.
+fn pump_body(body: Body, limit: usize, too_large: Arc<AtomicBool>) -> Body {
+    let hard_cap = limit.saturating_mul(2).max(limit.saturating_add(64 << 20));
+    let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(8);
+    tokio::spawn(async move {
+        let mut stream = body.into_data_stream();
+        let (mut seen, mut forwarding) = (0usize, true);
+        while let Some(Ok(chunk)) = stream.next().await {
+            seen += chunk.len();
+            if forwarding && seen > limit {
+                too_large.store(true, Ordering::SeqCst);
+                let err = std::io::Error::other("the upload exceeds the limit");
+                let _ = tx.send(Err(err)).await;
+                forwarding = false;
+            } else if forwarding && tx.send(Ok(chunk)).await.is_err() {
+                forwarding = false;
+            }
+            if seen > hard_cap {
+                break;
+            }
+        }
+    });
+    Body::from_stream(futures_util::stream::unfold(rx, |mut rx| async move {
+        rx.recv().await.map(|item| (item, rx))
+    }))
+}
+
+pub async fn submit(State(app): AppState, req: Request) -> Response {
     let farm = app.farm.clone();
-    match submit_inner(&app, multipart).await {
+    let limit = farm.config().limits.max_upload_bytes;
+    let too_large = Arc::new(AtomicBool::new(false));
+    let (parts, body) = req.into_parts();
+    let req = Request::from_parts(parts, pump_body(body, limit, too_large.clone()));
+    let result = match Multipart::from_request(req, &()).await {
+        Ok(multipart) => submit_inner(&app, multipart).await,
+        Err(rejection) => Err(Failure(
+            rejection.status(),
+            ApiError::new(rejection.body_text()),
+        )),
+    };
+    match result {
         Ok(info) => {
-            farm.metrics
-                .jobs_submitted
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            farm.metrics.jobs_submitted.fetch_add(1, Ordering::Relaxed);
             (StatusCode::CREATED, Json(info)).into_response()
         }
         Err(failure) => {
+            let failure = if too_large.load(Ordering::SeqCst) {
+                Failure(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    ApiError::new(format!("the upload exceeds the limit of {limit} bytes")),
+                )
+            } else {
+                failure
+            };
             farm.metrics
                 .submissions_rejected
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                .fetch_add(1, Ordering::Relaxed);
             tracing::info!("submission refused ({}): {}", failure.0, failure.1.error);
             failure.into_response()
         }
@@ -81,40 +133,52 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
     let mut spec: Option<JobSpec> = None;
     let mut scene: Option<(String, Vec<u8>)> = None;
     let mut parts: HashMap<String, AssetPart> = HashMap::new();
+    // The first problem is reported once the whole body has been read.
+    let mut problem: Option<Failure> = None;
     while let Some(field) = multipart
         .next_field()
         .await
         .map_err(|e| multipart_error(e, limit))?
     {
         let name = field.name().unwrap_or_default().to_string();
-        tracing::debug!("submission part {name:?} ({:?})", field.file_name());
         let file_name = field.file_name().map(str::to_string);
         let is_ref = field.content_type() == Some(CONTENT_TYPE_BLOB_REF);
         let bytes = field.bytes().await.map_err(|e| multipart_error(e, limit))?;
-        match name.as_str() {
-            PART_JOB if spec.is_none() => spec = Some(parse_json(&bytes)?),
-            PART_SCENE if scene.is_none() => {
-                scene = Some((scene_file_name(file_name.as_deref()), bytes.to_vec()))
-            }
-            PART_JOB | PART_SCENE => {
-                return Err(Failure::bad_request(format!(
-                    "the {name:?} part appears twice"
-                )))
-            }
-            _ => {
-                check_bundle_path(&name).map_err(Failure::bad_request)?;
-                let part = if is_ref {
-                    AssetPart::Blob(String::from_utf8_lossy(&bytes).trim().to_string())
-                } else {
-                    AssetPart::Bytes(bytes.to_vec())
-                };
-                if parts.insert(name.clone(), part).is_some() {
-                    return Err(Failure::bad_request(format!(
-                        "asset {name:?} appears twice"
-                    )));
-                }
-            }
+        if problem.is_some() {
+            continue;
         }
+        tracing::debug!("submission part {name:?} ({file_name:?})");
+        let outcome = match name.as_str() {
+            PART_JOB if spec.is_none() => parse_json(&bytes).map(|s| spec = Some(s)),
+            PART_SCENE if scene.is_none() => {
+                scene = Some((scene_file_name(file_name.as_deref()), bytes.to_vec()));
+                Ok(())
+            }
+            PART_JOB | PART_SCENE => Err(Failure::bad_request(format!(
+                "the {name:?} part appears twice"
+            ))),
+            _ => check_bundle_path(&name)
+                .map_err(Failure::bad_request)
+                .and_then(|()| {
+                    let part = if is_ref {
+                        AssetPart::Blob(String::from_utf8_lossy(&bytes).trim().to_string())
+                    } else {
+                        AssetPart::Bytes(bytes.to_vec())
+                    };
+                    match parts.insert(name.clone(), part) {
+                        Some(_) => Err(Failure::bad_request(format!(
+                            "asset {name:?} appears twice"
+                        ))),
+                        None => Ok(()),
+                    }
+                }),
+        };
+        if let Err(failure) = outcome {
+            problem = Some(failure);
+        }
+    }
+    if let Some(failure) = problem {
+        return Err(failure);
     }
     let spec = spec.unwrap_or_default();
     app.farm

@@ -105,27 +105,29 @@ pub async fn blocking<T: Send + 'static>(
     })?
 }
 
+/// Answers 401 after reading (and discarding) the request body, bounded by the upload limit,
+/// so that a client still sending it sees the answer rather than a reset connection.
+async fn unauthorized(req: Request, limit: usize, message: &str) -> Response {
+    let _ = axum::body::to_bytes(req.into_body(), limit).await;
+    Failure(StatusCode::UNAUTHORIZED, ApiError::new(message)).into_response()
+}
+
 async fn authenticate(State(app): AppState, req: Request, next: Next) -> Response {
     if let Some(expected) = &app.token_digest {
         let given = req
             .headers()
             .get(header::AUTHORIZATION)
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
-        let Some(given) = given else {
-            return Failure(
-                StatusCode::UNAUTHORIZED,
-                ApiError::new("this coordinator needs an 'Authorization: Bearer <token>' header"),
-            )
-            .into_response();
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(|t| -> [u8; 32] { Sha256::digest(t.trim().as_bytes()).into() });
+        let problem = match given {
+            None => Some("this coordinator needs an 'Authorization: Bearer <token>' header"),
+            Some(digest) if !bool::from(digest.ct_eq(expected)) => Some("wrong bearer token"),
+            Some(_) => None,
         };
-        let digest: [u8; 32] = Sha256::digest(given.trim().as_bytes()).into();
-        if !bool::from(digest.ct_eq(expected)) {
-            return Failure(
-                StatusCode::UNAUTHORIZED,
-                ApiError::new("wrong bearer token"),
-            )
-            .into_response();
+        if let Some(message) = problem {
+            let limit = app.farm.config().limits.max_upload_bytes;
+            return unauthorized(req, limit, message).await;
         }
     }
     next.run(req).await
@@ -156,7 +158,13 @@ pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
         token_digest: token.map(|t| Sha256::digest(t.as_bytes()).into()),
     });
     let api = Router::new()
-        .route("/jobs", post(jobs::submit).get(jobs::list))
+        // Submissions enforce the upload limit themselves, draining what lies beyond it.
+        .route(
+            "/jobs",
+            post(jobs::submit)
+                .layer(DefaultBodyLimit::disable())
+                .get(jobs::list),
+        )
         .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
         .route("/jobs/{id}/retry", post(jobs::retry))
         .route("/jobs/{id}/image", get(jobs::image))
