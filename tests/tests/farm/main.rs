@@ -5,5 +5,6 @@
 mod helpers;
 
 mod api;
+mod deploy;
 mod e2e;
 mod faults;
