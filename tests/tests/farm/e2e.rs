@@ -123,3 +123,39 @@ async fn cancelling_a_job_stops_its_rendering_tiles_within_a_second() {
     let image = tracer_core::Image::from_png_bytes(&png).unwrap();
     assert_eq!((image.width, image.height), (64, 64));
 }
+
+/// The README's first command: the embedded farm renders the showcase scene, byte-identical
+/// to `tracer render`, with any worker count.
+#[test]
+fn coordinator_render_matches_the_tracer_on_the_showcase_scene() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = workspace().join("scenes").join("showcase.scene");
+    let spec = small_spec(4, 64);
+    let tracer = tracer_png(&scene, &spec, tmp.path());
+    for workers in ["1", "3"] {
+        let out = tmp.path().join(format!("farm-{workers}.png"));
+        let status = std::process::Command::new(&bins().coordinator)
+            .arg("render")
+            .arg(&scene)
+            .arg("-o")
+            .arg(&out)
+            .args([
+                "--width",
+                "160",
+                "--height",
+                "120",
+                "--spp",
+                "4",
+                "--workers",
+                workers,
+            ])
+            .args(["--tile-size", "24"])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        assert!(
+            std::fs::read(&out).unwrap() == tracer,
+            "coordinator render --workers {workers} differs from tracer render"
+        );
+    }
+}
