@@ -17,7 +17,10 @@ use worker::protocol::{pixels_to_bytes, JobSpec, LeaseRequest};
 use worker::Client;
 
 fn main() {
-    let args: Vec<String> = std::env::args().skip(1).filter(|a| !a.starts_with('-')).collect();
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
     let workers: usize = args.first().and_then(|a| a.parse().ok()).unwrap_or(256);
     let tile: u32 = args.get(1).and_then(|a| a.parse().ok()).unwrap_or(8);
     let seconds: u64 = args.get(2).and_then(|a| a.parse().ok()).unwrap_or(5);
@@ -64,7 +67,8 @@ async fn run(workers: usize, tile: u32, duration: Duration) {
     let start = Instant::now();
     let mut tasks = Vec::new();
     for i in 0..workers {
-        let (client, blank, done, stop) = (client.clone(), blank.clone(), done.clone(), stop.clone());
+        let (client, blank, done, stop) =
+            (client.clone(), blank.clone(), done.clone(), stop.clone());
         tasks.push(tokio::spawn(async move {
             let req = LeaseRequest {
                 worker: format!("sim-{i}"),
@@ -74,7 +78,10 @@ async fn run(workers: usize, tile: u32, duration: Duration) {
                 let Some(lease) = client.lease(&req).await.unwrap() else {
                     break;
                 };
-                client.complete(lease.lease_id, blank.clone()).await.unwrap();
+                client
+                    .complete(lease.lease_id, blank.clone())
+                    .await
+                    .unwrap();
                 done.fetch_add(1, Ordering::Relaxed);
             }
         }));
@@ -89,7 +96,10 @@ async fn run(workers: usize, tile: u32, duration: Duration) {
     let elapsed = start.elapsed().as_secs_f64();
     let n = done.load(Ordering::Relaxed);
     let info = farm.job(job.id).unwrap();
-    assert_eq!(info.tiles_done as u64, n, "every acknowledged tile is recorded");
+    assert_eq!(
+        info.tiles_done as u64, n,
+        "every acknowledged tile is recorded"
+    );
     println!(
         "{workers} simulated workers, {tile}x{tile} blank tiles: {n} lease+complete round trips \
          in {elapsed:.2}s = {:.0}/s",

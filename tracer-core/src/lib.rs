@@ -13,6 +13,7 @@
 pub mod accel;
 pub mod bench;
 pub mod camera;
+pub mod convergence;
 pub mod film;
 pub mod geometry;
 pub mod metrics;

@@ -58,7 +58,7 @@ pub fn rel_mse(image: &Image, reference: &Image) -> Result<f64, String> {
 /// Averages `factor`×`factor` blocks (box filter), to compare a reduced render with a
 /// full-size reference. Dimensions must divide.
 pub fn downsample(image: &Image, factor: u32) -> Result<Image, String> {
-    if factor == 0 || image.width % factor != 0 || image.height % factor != 0 {
+    if factor == 0 || !image.width.is_multiple_of(factor) || !image.height.is_multiple_of(factor) {
         return Err(format!(
             "{}x{} does not divide by {factor}",
             image.width, image.height
@@ -79,8 +79,8 @@ pub fn downsample(image: &Image, factor: u32) -> Result<Image, String> {
                 }
             }
             let i = 3 * (y * w + x) as usize;
-            for c in 0..3 {
-                out.pixels[i + c] = acc[c] / n;
+            for (out, sum) in out.pixels[i..i + 3].iter_mut().zip(acc) {
+                *out = sum / n;
             }
         }
     }
@@ -102,6 +102,26 @@ pub fn mean_flip(test: &Image, reference: &Image) -> Result<f64, String> {
     );
     let pool = nv_flip::FlipPool::from_image(&error);
     Ok(pool.mean() as f64)
+}
+
+/// The metrics golden tests and reports quote, for one image against a reference.
+#[cfg(feature = "flip")]
+#[derive(Clone, Copy, Debug)]
+pub struct Comparison {
+    pub rmse: f64,
+    pub psnr: f64,
+    pub mean_flip: f64,
+}
+
+#[cfg(feature = "flip")]
+impl Comparison {
+    pub fn of(image: &Image, reference: &Image) -> Result<Comparison, String> {
+        Ok(Comparison {
+            rmse: rmse(image, reference)?,
+            psnr: psnr(image, reference)?,
+            mean_flip: mean_flip(image, reference)?,
+        })
+    }
 }
 
 #[cfg(test)]

@@ -41,7 +41,7 @@ impl Rng {
 /// spp not above √spp (40 → 5×8; a prime count degrades to 1×spp stripes, still unbiased).
 pub fn strata(spp: u32) -> (u32, u32) {
     let mut cols = (spp as f64).sqrt() as u32;
-    while cols > 1 && spp % cols != 0 {
+    while cols > 1 && !spp.is_multiple_of(cols) {
         cols -= 1;
     }
     let cols = cols.max(1);

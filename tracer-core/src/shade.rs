@@ -227,12 +227,12 @@ impl<'a> Tracer<'a> {
         };
         let to_light = target - p;
         let distance = to_light.length();
-        if !(distance > 0.0) || !distance.is_finite() {
+        if distance == 0.0 || !distance.is_finite() {
             return DVec3::ZERO;
         }
         let l = to_light / distance;
         let cos = n.dot(l);
-        if !(cos > 0.0) {
+        if cos.is_nan() || cos <= 0.0 {
             return DVec3::ZERO;
         }
         let shadow = spawn_ray(p, geometric_normal, l, error_scale);

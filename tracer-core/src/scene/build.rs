@@ -44,6 +44,11 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// The geometry, for direct ray queries (benchmarks, robustness tests).
+    pub fn world(&self) -> &World {
+        &self.world
+    }
+
     /// Loads a scene file and the assets it references (relative to its folder, then the
     /// folder's parent).
     pub fn load(path: &Path) -> Result<Scene, SceneError> {

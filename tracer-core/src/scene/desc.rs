@@ -260,7 +260,7 @@ impl Parser<'_> {
         let angle = self.number(el, "a")?;
         let axis = self.vec3(el)?;
         let length = axis.length();
-        if !(length > 0.0) || !length.is_finite() {
+        if length == 0.0 || !length.is_finite() {
             return Err(self.error(
                 el,
                 format!("in <{}>, the rotation axis must not be zero", el.name),

@@ -34,7 +34,7 @@ impl FaceFormat {
         match token.split('/').collect::<Vec<_>>().as_slice() {
             [_] => Self::Position,
             [_, _] => Self::PositionTex,
-            [_, t, _] if t.is_empty() => Self::PositionNormal,
+            [_, "", _] => Self::PositionNormal,
             _ => Self::PositionTexNormal,
         }
     }

@@ -4,6 +4,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
+mod report;
+
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use tracer_core::{CameraOverride, RenderSettings, Renderer, Scene, TextureFilter};
@@ -36,6 +38,11 @@ enum Command {
         #[arg(long, short)]
         quiet: bool,
     },
+    /// Measure error against run time over sample counts and thread counts, against a
+    /// high-sample reference: report.csv, report.md and error_vs_time.png.
+    Report(report::ReportArgs),
+    /// Compare two PNGs: RMSE, PSNR and mean FLIP.
+    Compare { image: PathBuf, reference: PathBuf },
     /// Measure BVH build time, ray throughput and a 1-spp render on the scene's camera.
     Bench {
         scene: PathBuf,
@@ -185,6 +192,21 @@ fn run(cli: Cli) -> Result<(), String> {
                 settings.height,
                 settings.spp,
                 rays as f64 / seconds / 1e6
+            );
+            Ok(())
+        }
+        Command::Report(args) => report::run(args),
+        Command::Compare { image, reference } => {
+            let read = |p: &PathBuf| {
+                std::fs::read(p)
+                    .map_err(|e| format!("cannot read {}: {e}", p.display()))
+                    .and_then(|b| tracer_core::Image::from_png_bytes(&b))
+            };
+            let (a, b) = (read(&image)?, read(&reference)?);
+            let m = tracer_core::metrics::Comparison::of(&a, &b)?;
+            println!(
+                "rmse {:.5}  psnr {:.2} dB  mean_flip {:.4}",
+                m.rmse, m.psnr, m.mean_flip
             );
             Ok(())
         }
