@@ -1,1 +1,115 @@
-fn main() {}
+//! `worker --coordinator URL [--token T] [--threads N] [--name NAME]`: pulls tiles until told to
+//! stop (SIGINT or SIGTERM), then hands its tile back and exits.
+
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::Parser;
+use worker::{available_cores, Client, SceneCache, Shutdown, Worker, WorkerConfig};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "worker",
+    version,
+    about = "Tessera farm worker: renders tiles for a coordinator"
+)]
+struct Args {
+    /// The coordinator's URL, such as http://10.0.0.5:7878.
+    #[arg(long, env = "TESSERA_COORDINATOR")]
+    coordinator: String,
+    /// The coordinator's bearer token.
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Render threads [default: every core].
+    #[arg(long)]
+    threads: Option<usize>,
+    /// A name unique in the farm [default: host-pid].
+    #[arg(long, env = "TESSERA_WORKER_NAME")]
+    name: Option<String>,
+    /// Longest pause between retries while the coordinator is unreachable, in seconds.
+    #[arg(long, default_value_t = 5.0)]
+    max_backoff: f64,
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    worker::init_logging("info");
+    let threads = args.threads.unwrap_or_else(available_cores).max(1);
+    let name = args.name.unwrap_or_else(worker::run::default_name);
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("worker: cannot start the async runtime: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    runtime.block_on(async move {
+        let client = match Client::new(&args.coordinator, args.token) {
+            Ok(c) => c,
+            Err(e) => {
+                eprintln!("worker: {e}");
+                return ExitCode::from(2);
+            }
+        };
+        let mut config = WorkerConfig::new(name.clone(), threads);
+        config.max_backoff = Duration::from_secs_f64(args.max_backoff.max(0.1));
+        let worker = match Worker::new(client, config, SceneCache::new()) {
+            Ok(w) => w,
+            Err(e) => {
+                eprintln!("worker: {e}");
+                return ExitCode::from(2);
+            }
+        };
+        let (stop, shutdown) = Shutdown::new();
+        tokio::spawn(async move {
+            wait_for_signal().await;
+            tracing::info!("stopping: handing back the current tile");
+            let _ = stop.send(true);
+            // A second signal means "now".
+            wait_for_signal().await;
+            std::process::exit(130);
+        });
+        tracing::info!(
+            "worker {name} with {threads} threads, coordinator {}",
+            args.coordinator
+        );
+        match worker.run(shutdown).await {
+            Ok(stats) => {
+                tracing::info!(
+                    "stopped: {} tiles rendered, {} failed, {} dropped, {} handed back",
+                    stats.rendered,
+                    stats.failed,
+                    stats.dropped,
+                    stats.handed_back
+                );
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("worker: {e}");
+                ExitCode::from(1)
+            }
+        }
+    })
+}
+
+async fn wait_for_signal() {
+    use tokio::signal::unix::{signal, SignalKind};
+    match (
+        signal(SignalKind::interrupt()),
+        signal(SignalKind::terminate()),
+    ) {
+        (Ok(mut int), Ok(mut term)) => {
+            tokio::select! {
+                _ = int.recv() => {}
+                _ = term.recv() => {}
+            }
+        }
+        _ => {
+            let _ = tokio::signal::ctrl_c().await;
+        }
+    }
+}

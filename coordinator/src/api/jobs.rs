@@ -1,0 +1,295 @@
+//! `/jobs`: submit (multipart, validated with tracer-core before it is accepted), list, show,
+//! cancel, retry, image and bundle.
+
+use std::collections::HashMap;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use axum::body::{Body, Bytes};
+use axum::extract::{FromRequest, Multipart, Path, Request, State};
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use futures_util::StreamExt;
+use tracer_core::scene::SceneDescription;
+use tracer_core::{MemoryAssets, Scene, SceneError};
+use worker::protocol::{
+    check_bundle_path, ApiError, Bundle, BundleFile, JobInfo, JobSpec, CONTENT_TYPE_BLOB_REF,
+    PART_JOB, PART_SCENE,
+};
+
+use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
+use crate::farm::NewJob;
+
+/// An asset part: its bytes, or a reference to content the coordinator already holds.
+enum AssetPart {
+    Bytes(Vec<u8>),
+    Blob(String),
+}
+
+fn scene_error(e: &SceneError) -> Failure {
+    Failure(
+        StatusCode::BAD_REQUEST,
+        ApiError {
+            error: e.to_string(),
+            file: Some(e.file.clone()),
+            line: Some(e.line),
+            column: Some(e.column),
+        },
+    )
+}
+
+fn multipart_error(e: axum::extract::multipart::MultipartError, limit: usize) -> Failure {
+    let status = e.status();
+    if status == StatusCode::PAYLOAD_TOO_LARGE {
+        return Failure(
+            status,
+            ApiError::new(format!("the upload exceeds the limit of {limit} bytes")),
+        );
+    }
+    Failure(
+        status,
+        ApiError::new(format!("malformed multipart body: {}", e.body_text())),
+    )
+}
+
+/// The scene file's name as reported in errors: the last component of the part's file name.
+fn scene_file_name(raw: Option<&str>) -> String {
+    raw.and_then(|n| n.rsplit(['/', '\\']).next())
+        .filter(|n| !n.is_empty() && n.len() <= 200)
+        .unwrap_or("scene.scene")
+        .to_string()
+}
+
+/// Feeds the request body to the multipart parser up to the upload limit, and keeps reading
+/// (discarding) past it, or after the handler stopped reading, up to a hard cap. A client
+/// still sending its body when the error answer goes out would otherwise see its connection
+/// reset instead of the 4xx.
+fn pump_body(body: Body, limit: usize, too_large: Arc<AtomicBool>) -> Body {
+    let hard_cap = limit.saturating_mul(2).max(limit.saturating_add(64 << 20));
+    let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(8);
+    tokio::spawn(async move {
+        let mut stream = body.into_data_stream();
+        let (mut seen, mut forwarding) = (0usize, true);
+        while let Some(Ok(chunk)) = stream.next().await {
+            seen += chunk.len();
+            if forwarding && seen > limit {
+                too_large.store(true, Ordering::SeqCst);
+                let err = std::io::Error::other("the upload exceeds the limit");
+                let _ = tx.send(Err(err)).await;
+                forwarding = false;
+            } else if forwarding && tx.send(Ok(chunk)).await.is_err() {
+                forwarding = false;
+            }
+            if seen > hard_cap {
+                break;
+            }
+        }
+    });
+    Body::from_stream(futures_util::stream::unfold(rx, |mut rx| async move {
+        rx.recv().await.map(|item| (item, rx))
+    }))
+}
+
+pub async fn submit(State(app): AppState, req: Request) -> Response {
+    let farm = app.farm.clone();
+    let limit = farm.config().limits.max_upload_bytes;
+    let too_large = Arc::new(AtomicBool::new(false));
+    let (parts, body) = req.into_parts();
+    let req = Request::from_parts(parts, pump_body(body, limit, too_large.clone()));
+    let result = match Multipart::from_request(req, &()).await {
+        Ok(multipart) => submit_inner(&app, multipart).await,
+        Err(rejection) => Err(Failure(
+            rejection.status(),
+            ApiError::new(rejection.body_text()),
+        )),
+    };
+    match result {
+        Ok(info) => {
+            farm.metrics.jobs_submitted.fetch_add(1, Ordering::Relaxed);
+            (StatusCode::CREATED, Json(info)).into_response()
+        }
+        Err(failure) => {
+            let failure = if too_large.load(Ordering::SeqCst) {
+                Failure(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    ApiError::new(format!("the upload exceeds the limit of {limit} bytes")),
+                )
+            } else {
+                failure
+            };
+            farm.metrics
+                .submissions_rejected
+                .fetch_add(1, Ordering::Relaxed);
+            tracing::info!("submission refused ({}): {}", failure.0, failure.1.error);
+            failure.into_response()
+        }
+    }
+}
+
+async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<JobInfo> {
+    let limit = app.farm.config().limits.max_upload_bytes;
+    let mut spec: Option<JobSpec> = None;
+    let mut scene: Option<(String, Vec<u8>)> = None;
+    let mut parts: HashMap<String, AssetPart> = HashMap::new();
+    // The first problem is reported once the whole body has been read.
+    let mut problem: Option<Failure> = None;
+    while let Some(field) = multipart
+        .next_field()
+        .await
+        .map_err(|e| multipart_error(e, limit))?
+    {
+        let name = field.name().unwrap_or_default().to_string();
+        let file_name = field.file_name().map(str::to_string);
+        let is_ref = field.content_type() == Some(CONTENT_TYPE_BLOB_REF);
+        let bytes = field.bytes().await.map_err(|e| multipart_error(e, limit))?;
+        if problem.is_some() {
+            continue;
+        }
+        tracing::debug!("submission part {name:?} ({file_name:?})");
+        let outcome = match name.as_str() {
+            PART_JOB if spec.is_none() => parse_json(&bytes).map(|s| spec = Some(s)),
+            PART_SCENE if scene.is_none() => {
+                scene = Some((scene_file_name(file_name.as_deref()), bytes.to_vec()));
+                Ok(())
+            }
+            PART_JOB | PART_SCENE => Err(Failure::bad_request(format!(
+                "the {name:?} part appears twice"
+            ))),
+            _ => check_bundle_path(&name)
+                .map_err(Failure::bad_request)
+                .and_then(|()| {
+                    let part = if is_ref {
+                        AssetPart::Blob(String::from_utf8_lossy(&bytes).trim().to_string())
+                    } else {
+                        AssetPart::Bytes(bytes.to_vec())
+                    };
+                    match parts.insert(name.clone(), part) {
+                        Some(_) => Err(Failure::bad_request(format!(
+                            "asset {name:?} appears twice"
+                        ))),
+                        None => Ok(()),
+                    }
+                }),
+        };
+        if let Err(failure) = outcome {
+            problem = Some(failure);
+        }
+    }
+    if let Some(failure) = problem {
+        return Err(failure);
+    }
+    let spec = spec.unwrap_or_default();
+    app.farm
+        .config()
+        .limits
+        .check(&spec)
+        .map_err(Failure::bad_request)?;
+    let (scene_file, scene_bytes) = scene.ok_or_else(|| {
+        Failure::bad_request("the submission has no \"scene\" part with the scene file")
+    })?;
+    let text = String::from_utf8(scene_bytes)
+        .map_err(|_| Failure::bad_request(format!("{scene_file} is not UTF-8 text")))?;
+    let desc = SceneDescription::parse(&text, &scene_file).map_err(|e| scene_error(&e))?;
+
+    // Only what the scene uses becomes part of the job; everything it uses must be here.
+    let mut assets = MemoryAssets {
+        files: HashMap::new(),
+    };
+    for path in desc.referenced_assets() {
+        check_bundle_path(&path)
+            .map_err(|e| Failure::bad_request(format!("{scene_file} references {e}")))?;
+        let bytes = match parts.remove(&path) {
+            Some(AssetPart::Bytes(bytes)) => bytes,
+            Some(AssetPart::Blob(hash)) => app.farm.files().blob(&hash)?.ok_or_else(|| {
+                Failure::bad_request(format!(
+                    "asset {path} refers to content {hash} that the coordinator does not hold; \
+                     send its bytes"
+                ))
+            })?,
+            None => {
+                return Err(Failure(
+                    StatusCode::BAD_REQUEST,
+                    ApiError {
+                        error: format!(
+                            "missing asset {path}: {scene_file} references it but the \
+                             submission has no part named {path:?}"
+                        ),
+                        file: Some(path.clone()),
+                        ..ApiError::default()
+                    },
+                ))
+            }
+        };
+        assets.files.insert(path, bytes);
+    }
+
+    let farm = app.farm.clone();
+    blocking(move || {
+        // Load the scene as a worker would, so a broken mesh or texture is refused now
+        // rather than failing on every worker.
+        let (scene_text, scene_name) = (text, scene_file);
+        Scene::build(&desc, &scene_name, &assets).map_err(|e| scene_error(&e))?;
+        let files = farm.files();
+        let scene_hash = files.put_blob(scene_text.as_bytes())?;
+        let mut bundle = Vec::new();
+        for (path, bytes) in &assets.files {
+            bundle.push(BundleFile {
+                path: path.clone(),
+                hash: files.put_blob(bytes)?,
+                size: bytes.len() as u64,
+            });
+        }
+        bundle.sort_by(|a, b| a.path.cmp(&b.path));
+        let name = spec.name.clone().unwrap_or_else(|| scene_name.clone());
+        Ok(farm.submit(NewJob {
+            name,
+            scene_file: scene_name,
+            scene_hash,
+            spec,
+            assets: bundle,
+        })?)
+    })
+    .await
+}
+
+pub async fn list(State(app): AppState) -> Json<Vec<JobInfo>> {
+    Json(app.farm.jobs())
+}
+
+pub async fn show(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<JobInfo>> {
+    Ok(Json(app.farm.job(parse_id("job", &id)?)?))
+}
+
+pub async fn cancel(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<JobInfo>> {
+    Ok(Json(app.farm.cancel(parse_id("job", &id)?)?))
+}
+
+pub async fn retry(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<JobInfo>> {
+    Ok(Json(app.farm.retry(parse_id("job", &id)?)?))
+}
+
+pub async fn bundle(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<Bundle>> {
+    Ok(Json(app.farm.bundle(parse_id("job", &id)?)?))
+}
+
+pub async fn image(State(app): AppState, Path(id): Path<String>) -> ApiResult<Response> {
+    let id = parse_id("job", &id)?;
+    let farm = app.farm.clone();
+    let png = blocking(move || Ok(farm.image(id)?)).await?;
+    Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::scene_file_name;
+
+    #[test]
+    fn scene_names_lose_their_folders() {
+        assert_eq!(scene_file_name(Some("a/b/c.scene")), "c.scene");
+        assert_eq!(scene_file_name(Some("..\\x.scene")), "x.scene");
+        assert_eq!(scene_file_name(Some("")), "scene.scene");
+        assert_eq!(scene_file_name(None), "scene.scene");
+    }
+}

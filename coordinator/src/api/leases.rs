@@ -1,0 +1,111 @@
+//! `/leases`: the worker side. Lease requests long-poll; every other call names a lease id
+//! and gets 409 when that lease is no longer live.
+
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use axum::body::Bytes;
+use axum::extract::{Path, State};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use worker::protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
+
+use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
+use crate::farm::FarmError;
+
+/// Counts 409s for the metrics on the way out.
+fn counted<T>(app: &super::App, result: Result<T, FarmError>) -> ApiResult<T> {
+    if let Err(FarmError::Stale(_)) = &result {
+        app.farm
+            .metrics
+            .stale_requests
+            .fetch_add(1, Ordering::Relaxed);
+    }
+    Ok(result?)
+}
+
+/// How often a waiting lease request looks for straggler tiles (which appear with time, not
+/// with a notification).
+const STRAGGLER_RECHECK: Duration = Duration::from_secs(1);
+
+pub async fn lease(State(app): AppState, body: Bytes) -> ApiResult<Response> {
+    let req: LeaseRequest = parse_json(&body)?;
+    if req.worker.is_empty() || req.worker.len() > 200 {
+        return Err(Failure::bad_request("a worker name is 1 to 200 bytes"));
+    }
+    let farm = &app.farm;
+    let start = Instant::now();
+    let wait = Duration::from_millis(req.wait_ms).min(farm.config().max_poll_wait);
+    let deadline = start + wait;
+    loop {
+        // Register for wake-ups before looking, so a tile queued in between is not missed.
+        let notified = farm.work_notified();
+        tokio::pin!(notified);
+        notified.as_mut().enable();
+        if farm.is_stopping() {
+            break;
+        }
+        if let Some(lease) = farm.lease(&req.worker)? {
+            farm.metrics.observe_lease_latency(start.elapsed());
+            return Ok(Json(lease).into_response());
+        }
+        let now = Instant::now();
+        if now >= deadline {
+            break;
+        }
+        let mut step = deadline - now;
+        if farm.config().stragglers {
+            step = step.min(STRAGGLER_RECHECK);
+        }
+        let _ = tokio::time::timeout(step, notified).await;
+    }
+    farm.metrics
+        .lease_polls_empty
+        .fetch_add(1, Ordering::Relaxed);
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+pub async fn heartbeat(
+    State(app): AppState,
+    Path(id): Path<String>,
+) -> ApiResult<Json<LeaseStatus>> {
+    let id = parse_id("lease", &id)?;
+    Ok(Json(counted(&app, app.farm.heartbeat(id))?))
+}
+
+pub async fn complete(
+    State(app): AppState,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> ApiResult<Json<Completion>> {
+    let id = parse_id("lease", &id)?;
+    let farm = app.farm.clone();
+    let result = blocking(move || Ok(farm.complete(id, &body))).await?;
+    let (done, finished_job) = counted(&app, result)?;
+    if let Some(job_id) = finished_job {
+        let farm = app.farm.clone();
+        tokio::task::spawn_blocking(move || {
+            if let Err(e) = farm.assemble(job_id) {
+                tracing::error!("job {job_id}: assembling the image failed: {e}");
+            }
+        });
+    }
+    Ok(Json(done))
+}
+
+pub async fn fail(
+    State(app): AppState,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> ApiResult<Json<JobInfo>> {
+    let id = parse_id("lease", &id)?;
+    let report: FailureReport = parse_json(&body)?;
+    Ok(Json(counted(&app, app.farm.fail(id, &report))?))
+}
+
+pub async fn hand_back(State(app): AppState, Path(id): Path<String>) -> ApiResult<StatusCode> {
+    let id = parse_id("lease", &id)?;
+    counted(&app, app.farm.hand_back(id))?;
+    Ok(StatusCode::NO_CONTENT)
+}

@@ -1,0 +1,189 @@
+//! The HTTP API (`docs/api.md`): one file per resource, bearer-token authentication, and the
+//! mapping from farm errors to status codes with JSON bodies.
+
+mod blobs;
+mod jobs;
+mod leases;
+
+use std::sync::Arc;
+
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post, put};
+use axum::{Json, Router};
+use sha2::{Digest, Sha256};
+use subtle::ConstantTimeEq;
+use worker::protocol::{ApiError, API_PREFIX};
+
+use crate::farm::{Farm, FarmError};
+
+/// What every handler shares.
+pub struct App {
+    pub farm: Arc<Farm>,
+    /// SHA-256 of the bearer token, when one is required. Comparing digests in constant time
+    /// also hides the token's length.
+    token_digest: Option<[u8; 32]>,
+}
+
+pub type AppState = State<Arc<App>>;
+
+/// An error answer: a status and a JSON [`ApiError`].
+#[derive(Debug)]
+pub struct Failure(pub StatusCode, pub ApiError);
+
+impl Failure {
+    pub fn bad_request(msg: impl Into<String>) -> Self {
+        Failure(StatusCode::BAD_REQUEST, ApiError::new(msg))
+    }
+
+    pub fn not_found(msg: impl Into<String>) -> Self {
+        Failure(StatusCode::NOT_FOUND, ApiError::new(msg))
+    }
+}
+
+impl IntoResponse for Failure {
+    fn into_response(self) -> Response {
+        let mut resp = (self.0, Json(self.1)).into_response();
+        if self.0 == StatusCode::UNAUTHORIZED {
+            resp.headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        resp
+    }
+}
+
+impl From<FarmError> for Failure {
+    fn from(e: FarmError) -> Self {
+        match e {
+            FarmError::NotFound(m) => Failure::not_found(m),
+            FarmError::Stale(m) | FarmError::Conflict(m) => {
+                Failure(StatusCode::CONFLICT, ApiError::new(m))
+            }
+            FarmError::BadRequest(body) => Failure(StatusCode::BAD_REQUEST, body),
+            FarmError::Store(e) => {
+                tracing::error!("storage error: {e}");
+                Failure(
+                    StatusCode::INTERNAL_SERVER_ERROR,
+                    ApiError::new(format!("storage error: {e}")),
+                )
+            }
+        }
+    }
+}
+
+impl From<crate::store::StoreError> for Failure {
+    fn from(e: crate::store::StoreError) -> Self {
+        FarmError::Store(e).into()
+    }
+}
+
+pub type ApiResult<T> = Result<T, Failure>;
+
+/// Parses a numeric path id; anything else names no resource.
+pub fn parse_id(what: &str, raw: &str) -> ApiResult<u64> {
+    raw.parse()
+        .map_err(|_| Failure::not_found(format!("no {what} {raw:?}")))
+}
+
+/// Parses a JSON body, answering 400 with serde's message when it does not fit.
+pub fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> ApiResult<T> {
+    serde_json::from_slice(body)
+        .map_err(|e| Failure::bad_request(format!("invalid JSON body: {e}")))
+}
+
+/// Runs blocking work (file I/O, scene building, PNG encoding) off the async threads.
+pub async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> ApiResult<T> + Send + 'static,
+) -> ApiResult<T> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| {
+        Failure(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            ApiError::new(format!("internal error: {e}")),
+        )
+    })?
+}
+
+/// Answers 401 after reading (and discarding) the request body, bounded by the upload limit,
+/// so that a client still sending it sees the answer rather than a reset connection.
+async fn unauthorized(req: Request, limit: usize, message: &str) -> Response {
+    let _ = axum::body::to_bytes(req.into_body(), limit).await;
+    Failure(StatusCode::UNAUTHORIZED, ApiError::new(message)).into_response()
+}
+
+async fn authenticate(State(app): AppState, req: Request, next: Next) -> Response {
+    if let Some(expected) = &app.token_digest {
+        let given = req
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "))
+            .map(|t| -> [u8; 32] { Sha256::digest(t.trim().as_bytes()).into() });
+        let problem = match given {
+            None => Some("this coordinator needs an 'Authorization: Bearer <token>' header"),
+            Some(digest) if !bool::from(digest.ct_eq(expected)) => Some("wrong bearer token"),
+            Some(_) => None,
+        };
+        if let Some(message) = problem {
+            let limit = app.farm.config().limits.max_upload_bytes;
+            return unauthorized(req, limit, message).await;
+        }
+    }
+    next.run(req).await
+}
+
+async fn healthz() -> &'static str {
+    "ok\n"
+}
+
+async fn metrics(State(app): AppState) -> Response {
+    (
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        app.farm.metrics_text(),
+    )
+        .into_response()
+}
+
+async fn not_found() -> Failure {
+    Failure::not_found("no such route; see docs/api.md")
+}
+
+/// The whole API. `/healthz` answers without a token (liveness probes carry none and it
+/// reveals nothing); every other route needs it when one is set.
+pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
+    let limit = farm.config().limits.max_upload_bytes;
+    let app = Arc::new(App {
+        farm,
+        token_digest: token.map(|t| Sha256::digest(t.as_bytes()).into()),
+    });
+    let api = Router::new()
+        // Submissions enforce the upload limit themselves, draining what lies beyond it.
+        .route(
+            "/jobs",
+            post(jobs::submit)
+                .layer(DefaultBodyLimit::disable())
+                .get(jobs::list),
+        )
+        .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
+        .route("/jobs/{id}/retry", post(jobs::retry))
+        .route("/jobs/{id}/image", get(jobs::image))
+        .route("/jobs/{id}/bundle", get(jobs::bundle))
+        .route("/blobs/missing", post(blobs::missing))
+        .route("/blobs/{hash}", get(blobs::show))
+        .route("/leases", post(leases::lease))
+        .route("/leases/{id}", axum::routing::delete(leases::hand_back))
+        .route("/leases/{id}/heartbeat", post(leases::heartbeat))
+        .route("/leases/{id}/pixels", put(leases::complete))
+        .route("/leases/{id}/failure", post(leases::fail));
+    let guarded = Router::new()
+        .nest(API_PREFIX, api)
+        .route("/metrics", get(metrics))
+        .route_layer(middleware::from_fn_with_state(app.clone(), authenticate));
+    Router::new()
+        .route("/healthz", get(healthz))
+        .merge(guarded)
+        .fallback(not_found)
+        .layer(DefaultBodyLimit::max(limit))
+        .with_state(app)
+}

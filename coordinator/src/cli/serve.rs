@@ -1,0 +1,182 @@
+//! `coordinator serve`: a long-running coordinator for a farm of separate workers.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::Duration;
+
+use clap::Args;
+
+use crate::clock::SystemClock;
+use crate::config::{FarmConfig, Limits};
+use crate::farm::Farm;
+
+#[derive(Args, Debug)]
+pub struct ServeArgs {
+    /// Address to listen on (port 0 picks a free port, printed on stdout).
+    #[arg(long, default_value = "127.0.0.1:7878")]
+    pub listen: String,
+    /// Where jobs, assets, tiles and images are kept; a restart on the same dir resumes.
+    #[arg(long, default_value = "tessera-data")]
+    pub data_dir: PathBuf,
+    /// Require `Authorization: Bearer <token>` on every API call.
+    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Allow a non-loopback listen address without a token.
+    #[arg(long)]
+    pub insecure: bool,
+    /// Seconds without a heartbeat before a worker's tile is requeued.
+    #[arg(long, default_value_t = 5.0)]
+    pub lease_timeout: f64,
+    /// Seconds between worker heartbeats (and so how fast a cancel reaches them).
+    #[arg(long, default_value_t = 1.0)]
+    pub heartbeat: f64,
+    /// Seconds that leases granted before a restart stay valid after it.
+    #[arg(long, default_value_t = 15.0)]
+    pub restart_grace: f64,
+    /// Never hand idle workers copies of slow tiles.
+    #[arg(long)]
+    pub no_stragglers: bool,
+    /// Largest submission, in MiB.
+    #[arg(long, default_value_t = 256)]
+    pub max_upload_mib: usize,
+    /// Largest width or height.
+    #[arg(long, default_value_t = Limits::default().max_dimension)]
+    pub max_dimension: u32,
+    /// Largest samples per pixel.
+    #[arg(long, default_value_t = Limits::default().max_spp)]
+    pub max_spp: u32,
+    /// Largest ray depth.
+    #[arg(long, default_value_t = Limits::default().max_depth)]
+    pub max_depth: u32,
+}
+
+fn secs(v: f64, what: &str) -> Result<Duration, String> {
+    if v.is_finite() && v > 0.0 {
+        Ok(Duration::from_secs_f64(v))
+    } else {
+        Err(format!("--{what} must be a positive number of seconds"))
+    }
+}
+
+impl ServeArgs {
+    fn config(&self) -> Result<FarmConfig, String> {
+        let config = FarmConfig {
+            lease_timeout: secs(self.lease_timeout, "lease-timeout")?,
+            heartbeat: secs(self.heartbeat, "heartbeat")?,
+            restart_grace: secs(self.restart_grace, "restart-grace")?,
+            stragglers: !self.no_stragglers,
+            limits: Limits {
+                max_upload_bytes: self.max_upload_mib.saturating_mul(1 << 20),
+                max_dimension: self.max_dimension,
+                max_spp: self.max_spp,
+                max_depth: self.max_depth,
+                ..Limits::default()
+            },
+            ..FarmConfig::default()
+        };
+        if config.heartbeat * 2 > config.lease_timeout {
+            return Err("--heartbeat must be at most half of --lease-timeout".into());
+        }
+        Ok(config)
+    }
+}
+
+/// Refuses to expose an unauthenticated coordinator beyond this machine.
+pub fn check_exposure(addr: SocketAddr, token: Option<&str>, insecure: bool) -> Result<(), String> {
+    if token.is_some_and(str::is_empty) {
+        return Err("the token is empty".into());
+    }
+    if !addr.ip().is_loopback() && token.is_none() && !insecure {
+        return Err(format!(
+            "refusing to listen on {addr} without a token: a farm runs whatever it is sent. \
+             Pass --token (or TESSERA_TOKEN), or --insecure on a trusted network"
+        ));
+    }
+    Ok(())
+}
+
+pub fn run(args: ServeArgs) -> ExitCode {
+    worker::init_logging("info");
+    let fail = |msg: String| {
+        eprintln!("coordinator: {msg}");
+        ExitCode::from(2)
+    };
+    let config = match args.config() {
+        Ok(c) => c,
+        Err(e) => return fail(e),
+    };
+    let runtime = match super::runtime() {
+        Ok(rt) => rt,
+        Err(e) => return fail(e),
+    };
+    runtime.block_on(async move {
+        let addr = match tokio::net::lookup_host(&args.listen)
+            .await
+            .map(|mut a| a.next())
+        {
+            Ok(Some(addr)) => addr,
+            _ => {
+                return fail(format!(
+                    "cannot resolve the listen address {:?}",
+                    args.listen
+                ))
+            }
+        };
+        if let Err(e) = check_exposure(addr, args.token.as_deref(), args.insecure) {
+            return fail(e);
+        }
+        let farm = match Farm::open(&args.data_dir, config, Arc::new(SystemClock)) {
+            Ok(f) => f,
+            Err(e) => return fail(format!("opening {}: {e}", args.data_dir.display())),
+        };
+        let listener = match tokio::net::TcpListener::bind(addr).await {
+            Ok(l) => l,
+            Err(e) => return fail(format!("cannot listen on {addr}: {e}")),
+        };
+        let local = listener
+            .local_addr()
+            .map(|a| a.to_string())
+            .unwrap_or_default();
+        // Scripts and tests read the address (port 0 picks one) from this line.
+        println!("listening on http://{local}");
+        tracing::info!(
+            "coordinator {} on http://{local}, data in {}{}",
+            env!("CARGO_PKG_VERSION"),
+            args.data_dir.display(),
+            if args.token.is_some() {
+                ", token required"
+            } else {
+                ""
+            }
+        );
+        match crate::server::serve(listener, farm, args.token, super::stop_signal()).await {
+            Ok(()) => {
+                tracing::info!("stopped");
+                ExitCode::SUCCESS
+            }
+            Err(e) => fail(format!("serving: {e}")),
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_loopback_may_go_without_a_token() {
+        let lo: SocketAddr = "127.0.0.1:1".parse().unwrap();
+        let any: SocketAddr = "0.0.0.0:1".parse().unwrap();
+        let v6: SocketAddr = "[::1]:1".parse().unwrap();
+        assert!(check_exposure(lo, None, false).is_ok());
+        assert!(check_exposure(v6, None, false).is_ok());
+        assert!(check_exposure(any, None, false)
+            .unwrap_err()
+            .contains("--token"));
+        assert!(check_exposure(any, Some("t"), false).is_ok());
+        assert!(check_exposure(any, None, true).is_ok());
+        assert!(check_exposure(lo, Some(""), false).is_err());
+    }
+}

@@ -1,0 +1,142 @@
+//! The farm's tunables and the limits that keep one submission from exhausting it.
+
+use std::time::Duration;
+
+use worker::protocol::JobSpec;
+
+/// Upper bounds on what a job may ask for; each breach is a 4xx with the limit in its message.
+#[derive(Clone, Debug)]
+pub struct Limits {
+    /// The whole multipart body, scene and assets included.
+    pub max_upload_bytes: usize,
+    /// Width and height each.
+    pub max_dimension: u32,
+    /// Width × height.
+    pub max_pixels: u64,
+    pub max_spp: u32,
+    pub max_depth: u32,
+    pub min_tile_size: u32,
+    pub max_tile_size: u32,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_upload_bytes: 256 << 20,
+            max_dimension: 16_384,
+            max_pixels: 64 << 20,
+            max_spp: 16_384,
+            max_depth: 64,
+            min_tile_size: 4,
+            max_tile_size: 1024,
+        }
+    }
+}
+
+impl Limits {
+    /// Checks a job's settings against the limits and tracer-core's own validation.
+    pub fn check(&self, spec: &JobSpec) -> Result<(), String> {
+        let s = &spec.render;
+        s.validate()?;
+        if s.width > self.max_dimension || s.height > self.max_dimension {
+            return Err(format!(
+                "image size {}x{} exceeds the limit of {} pixels per side",
+                s.width, s.height, self.max_dimension
+            ));
+        }
+        if s.width as u64 * s.height as u64 > self.max_pixels {
+            return Err(format!(
+                "image size {}x{} exceeds the limit of {} pixels",
+                s.width, s.height, self.max_pixels
+            ));
+        }
+        if s.spp > self.max_spp {
+            return Err(format!(
+                "spp {} exceeds the limit of {}",
+                s.spp, self.max_spp
+            ));
+        }
+        if s.max_depth == 0 || s.max_depth > self.max_depth {
+            return Err(format!(
+                "max_depth {} must be between 1 and {}",
+                s.max_depth, self.max_depth
+            ));
+        }
+        if spec.tile_size < self.min_tile_size || spec.tile_size > self.max_tile_size {
+            return Err(format!(
+                "tile_size {} must be between {} and {}",
+                spec.tile_size, self.min_tile_size, self.max_tile_size
+            ));
+        }
+        if let Some(name) = &spec.name {
+            if name.len() > 200 {
+                return Err("a job name is at most 200 bytes".into());
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How the farm schedules and expires work.
+#[derive(Clone, Debug)]
+pub struct FarmConfig {
+    /// A lease lapses this long after it was granted or last heartbeat.
+    pub lease_timeout: Duration,
+    /// How often workers heartbeat; also how fast a cancel reaches them.
+    pub heartbeat: Duration,
+    /// The longest a lease request is held open waiting for work.
+    pub max_poll_wait: Duration,
+    /// After a restart, leases granted before it get this long to be heartbeat or completed.
+    pub restart_grace: Duration,
+    /// Hand idle workers copies of slow outstanding tiles when nothing is queued.
+    pub stragglers: bool,
+    /// A tile fails its job after failing on this many different workers...
+    pub max_tile_workers: usize,
+    /// ...or this many times in all (a farm of one worker must also give up).
+    pub max_tile_attempts: usize,
+    pub limits: Limits,
+}
+
+impl Default for FarmConfig {
+    fn default() -> Self {
+        Self {
+            lease_timeout: Duration::from_secs(5),
+            heartbeat: Duration::from_secs(1),
+            max_poll_wait: Duration::from_secs(30),
+            restart_grace: Duration::from_secs(15),
+            stragglers: true,
+            max_tile_workers: 3,
+            max_tile_attempts: 5,
+            limits: Limits::default(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn limits_name_what_they_refuse() {
+        let limits = Limits::default();
+        let mut spec = JobSpec::default();
+        assert!(limits.check(&spec).is_ok());
+        spec.render.spp = 1_000_000;
+        assert!(limits.check(&spec).unwrap_err().contains("spp"));
+        spec.render.spp = 4;
+        spec.render.width = 100_000;
+        assert!(limits.check(&spec).unwrap_err().contains("per side"));
+        spec.render.width = 16_000;
+        spec.render.height = 16_000;
+        assert!(limits.check(&spec).unwrap_err().contains("pixels"));
+        spec.render.height = 10;
+        spec.tile_size = 1;
+        assert!(limits.check(&spec).unwrap_err().contains("tile_size"));
+        spec.tile_size = 64;
+        spec.render.max_depth = 1000;
+        assert!(limits.check(&spec).unwrap_err().contains("max_depth"));
+        spec.render.max_depth = 5;
+        spec.render.width = 0;
+        assert!(limits.check(&spec).is_err());
+    }
+}

@@ -1,0 +1,161 @@
+//! The farm's image equals the local render's, bytes for bytes, for any worker count and tile
+//! size; cancelling reaches rendering workers within about a second.
+
+use std::time::{Duration, Instant};
+
+use worker::protocol::JobState;
+use worker::Client;
+
+use crate::helpers::*;
+
+/// Waits until the coordinator has seen `n` workers ask for work.
+async fn wait_for_workers(url: &str, n: usize) {
+    let start = Instant::now();
+    let needle = format!("tessera_workers_seen {n}\n");
+    loop {
+        let text = reqwest::get(format!("{url}/metrics"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        if text.contains(&needle) {
+            return;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "workers never showed up"
+        );
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_workers_render_stacks_exactly_like_the_tracer() {
+    let tmp = tempfile::tempdir().unwrap();
+    let coord = start_coordinator(&tmp.path().join("data"), 0, &[], tmp.path().join("c.log"));
+    let workers = [
+        start_worker(
+            &coord.url,
+            "w1",
+            &["--threads", "1"],
+            tmp.path().join("w1.log"),
+        ),
+        start_worker(
+            &coord.url,
+            "w2",
+            &["--threads", "1"],
+            tmp.path().join("w2.log"),
+        ),
+    ];
+    wait_for_workers(&coord.url, 2).await;
+    let client = Client::new(&coord.url, None).unwrap();
+    let scene = course_scene("stacks.scene");
+    // An odd tile size leaves ragged tiles at the right and bottom edges.
+    for (spp, tile) in [(4, 32), (8, 17)] {
+        let spec = small_spec(spp, tile);
+        let job = submit(&client, &scene, spec.clone()).await;
+        let done = wait_finished(&client, job.id, Duration::from_secs(60)).await;
+        assert_eq!(done.state, JobState::Done, "{done:?}");
+        assert_eq!(done.tiles_done, done.tiles_total);
+        let farm_png = client.image(job.id).await.unwrap();
+        let tracer = tracer_png(&scene, &spec, tmp.path());
+        assert!(
+            farm_png == tracer,
+            "the farm's PNG differs from tracer render's (tile {tile}, spp {spp})"
+        );
+        let logs: Vec<String> = workers.iter().map(Proc::log_text).collect();
+        let counts = rendered_tiles(&logs, job.id);
+        assert_eq!(counts.len() as u32, done.tiles_total, "every tile rendered");
+    }
+    let logs: Vec<String> = workers.iter().map(Proc::log_text).collect();
+    for (i, log) in logs.iter().enumerate() {
+        assert!(
+            log.contains(": rendered in "),
+            "worker {} rendered nothing:\n{log}",
+            i + 1
+        );
+        // One scene load per job, however many tiles.
+        assert!(log.matches("loaded stacks.scene").count() <= 2, "{log}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancelling_a_job_stops_its_rendering_tiles_within_a_second() {
+    let tmp = tempfile::tempdir().unwrap();
+    let coord = start_coordinator(
+        &tmp.path().join("data"),
+        0,
+        &["--heartbeat", "0.25"],
+        tmp.path().join("c.log"),
+    );
+    let worker = start_worker(
+        &coord.url,
+        "w1",
+        &["--threads", "2"],
+        tmp.path().join("w.log"),
+    );
+    let client = Client::new(&coord.url, None).unwrap();
+    // One big tile that takes many seconds.
+    let mut spec = small_spec(4096, 256);
+    spec.render.width = 64;
+    spec.render.height = 64;
+    let job = submit(&client, &course_scene("stacks.scene"), spec).await;
+    wait_until(&client, job.id, Duration::from_secs(20), |j| {
+        j.tiles_running == 1
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let cancelled = client.cancel(job.id).await.unwrap();
+    assert_eq!(cancelled.state, JobState::Cancelled);
+    let start = Instant::now();
+    while !worker.log_text().contains("dropped after") {
+        assert!(
+            start.elapsed() < Duration::from_millis(1500),
+            "the worker kept rendering a cancelled tile:\n{}",
+            worker.log_text()
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // Cancelling twice is a conflict; the partial image is still served.
+    assert!(client.cancel(job.id).await.is_err());
+    let png = client.image(job.id).await.unwrap();
+    let image = tracer_core::Image::from_png_bytes(&png).unwrap();
+    assert_eq!((image.width, image.height), (64, 64));
+}
+
+/// The README's first command: the embedded farm renders the showcase scene, byte-identical
+/// to `tracer render`, with any worker count.
+#[test]
+fn coordinator_render_matches_the_tracer_on_the_showcase_scene() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = workspace().join("scenes").join("showcase.scene");
+    let spec = small_spec(4, 64);
+    let tracer = tracer_png(&scene, &spec, tmp.path());
+    for workers in ["1", "3"] {
+        let out = tmp.path().join(format!("farm-{workers}.png"));
+        let status = std::process::Command::new(&bins().coordinator)
+            .arg("render")
+            .arg(&scene)
+            .arg("-o")
+            .arg(&out)
+            .args([
+                "--width",
+                "160",
+                "--height",
+                "120",
+                "--spp",
+                "4",
+                "--workers",
+                workers,
+            ])
+            .args(["--tile-size", "24"])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        assert!(
+            std::fs::read(&out).unwrap() == tracer,
+            "coordinator render --workers {workers} differs from tracer render"
+        );
+    }
+}

@@ -1,0 +1,277 @@
+//! Starting the farm's real binaries as child processes: a coordinator on port 0 (its address
+//! read from its first stdout line) and workers, each logging to a file the test can read.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use worker::protocol::{JobInfo, JobSpec};
+use worker::Client;
+
+pub fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ sits in the workspace")
+        .to_path_buf()
+}
+
+/// `shared/` beside the project (CI clones the repository with it there).
+pub fn shared() -> PathBuf {
+    let dir = workspace().join("..").join("shared");
+    dir.canonicalize().unwrap_or_else(|e| {
+        panic!(
+            "{} is missing ({e}): the course scenes live there",
+            dir.display()
+        )
+    })
+}
+
+pub fn course_scene(name: &str) -> PathBuf {
+    shared().join("scenes").join("course").join(name)
+}
+
+pub struct Bins {
+    pub coordinator: PathBuf,
+    pub worker: PathBuf,
+    pub tracer: PathBuf,
+}
+
+/// The release binaries of the coordinator, the worker and the tracer, built once per test
+/// run (a no-op when `.ci/run` built them already). `TESSERA_BIN_DIR` points elsewhere.
+pub fn bins() -> &'static Bins {
+    static BINS: OnceLock<Bins> = OnceLock::new();
+    BINS.get_or_init(|| {
+        let dir = match std::env::var_os("TESSERA_BIN_DIR") {
+            Some(dir) => PathBuf::from(dir),
+            None => {
+                let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+                let status = Command::new(cargo)
+                    .current_dir(workspace())
+                    .args([
+                        "build",
+                        "--release",
+                        "--bins",
+                        "-p",
+                        "coordinator",
+                        "-p",
+                        "worker",
+                        "-p",
+                        "tracer-core",
+                    ])
+                    .status()
+                    .expect("running cargo build");
+                assert!(status.success(), "building the farm's binaries failed");
+                std::env::var_os("CARGO_TARGET_DIR")
+                    .map(PathBuf::from)
+                    .unwrap_or_else(|| workspace().join("target"))
+                    .join("release")
+            }
+        };
+        let bins = Bins {
+            coordinator: dir.join("coordinator"),
+            worker: dir.join("worker"),
+            tracer: dir.join("tracer"),
+        };
+        for bin in [&bins.coordinator, &bins.worker, &bins.tracer] {
+            assert!(bin.is_file(), "{} was not built", bin.display());
+        }
+        bins
+    })
+}
+
+/// A child process that is killed when dropped, with its stderr in a file.
+pub struct Proc {
+    pub child: Child,
+    pub log: PathBuf,
+}
+
+impl Proc {
+    pub fn spawn(mut cmd: Command, log: PathBuf) -> Proc {
+        let file = std::fs::File::create(&log).unwrap();
+        cmd.stderr(file).stdin(Stdio::null());
+        let child = cmd
+            .spawn()
+            .unwrap_or_else(|e| panic!("starting {cmd:?}: {e}"));
+        Proc { child, log }
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// SIGKILL: no chance to hand anything back.
+    pub fn kill9(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    pub fn signal(&self, sig: &str) {
+        let status = Command::new("kill")
+            .args([&format!("-{sig}"), &self.pid().to_string()])
+            .status()
+            .unwrap();
+        assert!(status.success());
+    }
+
+    /// Waits for the process to exit by itself.
+    pub fn wait_exit(&mut self, timeout: Duration) -> std::process::ExitStatus {
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status;
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "{} did not exit",
+                self.log.display()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+pub struct Coordinator {
+    pub proc: Proc,
+    pub url: String,
+    pub port: u16,
+}
+
+/// Starts `coordinator serve` on 127.0.0.1 (`port` 0 picks one) with `data_dir`.
+pub fn start_coordinator(data_dir: &Path, port: u16, extra: &[&str], log: PathBuf) -> Coordinator {
+    let mut cmd = Command::new(&bins().coordinator);
+    cmd.arg("serve")
+        .arg("--listen")
+        .arg(format!("127.0.0.1:{port}"))
+        .arg("--data-dir")
+        .arg(data_dir)
+        .args(extra)
+        .stdout(Stdio::piped());
+    let mut proc = Proc::spawn(cmd, log);
+    let stdout = proc.child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = BufReader::new(stdout).read_line(&mut line);
+        let _ = tx.send(line);
+    });
+    let line = rx
+        .recv_timeout(Duration::from_secs(20))
+        .unwrap_or_else(|_| panic!("the coordinator did not start: {}", proc.log_text()));
+    let url = line
+        .trim()
+        .strip_prefix("listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}: {}", proc.log_text()))
+        .to_string();
+    let port = url.rsplit(':').next().unwrap().parse().unwrap();
+    Coordinator { proc, url, port }
+}
+
+/// Starts a worker process.
+pub fn start_worker(url: &str, name: &str, extra: &[&str], log: PathBuf) -> Proc {
+    let mut cmd = Command::new(&bins().worker);
+    cmd.args(["--coordinator", url, "--name", name, "--max-backoff", "0.3"])
+        .args(extra)
+        .stdout(Stdio::null());
+    Proc::spawn(cmd, log)
+}
+
+/// `tracer render` with the same settings: the reference the farm must equal byte for byte.
+pub fn tracer_png(scene: &Path, spec: &JobSpec, out_dir: &Path) -> Vec<u8> {
+    let out = out_dir.join("tracer.png");
+    let s = &spec.render;
+    let status = Command::new(&bins().tracer)
+        .arg("render")
+        .arg(scene)
+        .arg("-o")
+        .arg(&out)
+        .arg("-q")
+        .args([
+            "--width",
+            &s.width.to_string(),
+            "--height",
+            &s.height.to_string(),
+        ])
+        .args([
+            "--spp",
+            &s.spp.to_string(),
+            "--depth",
+            &s.max_depth.to_string(),
+        ])
+        .args(["--seed", &s.seed.to_string()])
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success(), "tracer render failed");
+    std::fs::read(out).unwrap()
+}
+
+/// A small job: 160x120 of `spp` samples in `tile`-pixel tiles.
+pub fn small_spec(spp: u32, tile: u32) -> JobSpec {
+    let mut spec = JobSpec::default();
+    spec.render.width = 160;
+    spec.render.height = 120;
+    spec.render.spp = spp;
+    spec.tile_size = tile;
+    spec
+}
+
+pub async fn submit(client: &Client, scene: &Path, spec: JobSpec) -> JobInfo {
+    let sub = coordinator::cli::collect_submission(scene, spec).unwrap();
+    client.submit(&sub).await.unwrap()
+}
+
+/// Polls the job until `done` holds, failing after `timeout`.
+pub async fn wait_until(
+    client: &Client,
+    id: u64,
+    timeout: Duration,
+    done: impl Fn(&JobInfo) -> bool,
+) -> JobInfo {
+    let start = Instant::now();
+    let mut last = None;
+    loop {
+        if let Ok(info) = client.job(id).await {
+            if done(&info) {
+                return info;
+            }
+            last = Some(info);
+        }
+        assert!(
+            start.elapsed() < timeout,
+            "job {id} did not get there in {timeout:?}: {last:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+pub async fn wait_finished(client: &Client, id: u64, timeout: Duration) -> JobInfo {
+    wait_until(client, id, timeout, |j| j.state.is_finished()).await
+}
+
+/// How many times each tile index of `job` appears as rendered in the workers' logs.
+pub fn rendered_tiles(logs: &[String], job: u64) -> std::collections::BTreeMap<u32, usize> {
+    let mut counts = std::collections::BTreeMap::new();
+    let prefix = format!("job {job} tile ");
+    for log in logs {
+        for line in log.lines().filter(|l| l.contains(": rendered in ")) {
+            if let Some(rest) = line.split(&prefix).nth(1) {
+                let tile: u32 = rest.split(' ').next().unwrap().parse().unwrap();
+                *counts.entry(tile).or_default() += 1;
+            }
+        }
+    }
+    counts
+}

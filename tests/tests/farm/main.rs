@@ -1,0 +1,10 @@
+//! The farm across processes: a real coordinator and real workers, compared with `tracer
+//! render` byte for byte, through worker and coordinator crashes, bad submissions, ssh and
+//! docker compose.
+
+mod helpers;
+
+mod api;
+mod deploy;
+mod e2e;
+mod faults;

@@ -1,0 +1,287 @@
+//! A typed HTTP client for the coordinator: each route's status codes become enum variants, so
+//! callers decide between retrying (unreachable), dropping a tile (stale lease) and giving up.
+
+use std::time::Duration;
+
+use reqwest::{header, Method, RequestBuilder, Response, StatusCode};
+use serde::de::DeserializeOwned;
+
+use crate::protocol::{
+    ApiError, Bundle, Completion, FailureReport, JobInfo, JobSpec, Lease, LeaseRequest,
+    LeaseStatus, API_PREFIX, CONTENT_TYPE_BLOB_REF, PART_JOB, PART_SCENE,
+};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The coordinator could not be reached or did not answer in time: try again later.
+    #[error("coordinator unreachable: {0}")]
+    Unreachable(String),
+    /// 409: the lease is stale or unknown (or the job no longer wants the tile). Drop the tile.
+    #[error("lease no longer valid: {0}")]
+    Stale(String),
+    /// Any other error status, with the coordinator's message.
+    #[error("{message} (HTTP {status})")]
+    Api {
+        status: u16,
+        message: String,
+        body: ApiError,
+    },
+    /// An answer that does not follow the protocol.
+    #[error("unexpected answer from the coordinator: {0}")]
+    Protocol(String),
+}
+
+impl ClientError {
+    /// Worth retrying after a pause: the network or a server-side (5xx) problem.
+    pub fn is_transient(&self) -> bool {
+        match self {
+            ClientError::Unreachable(_) => true,
+            ClientError::Api { status, .. } => *status >= 500,
+            _ => false,
+        }
+    }
+}
+
+impl From<reqwest::Error> for ClientError {
+    fn from(e: reqwest::Error) -> Self {
+        if e.is_decode() {
+            ClientError::Protocol(e.to_string())
+        } else {
+            // Connect, timeout, reset or body errors: all mean "try again".
+            let mut msg = e.to_string();
+            let mut source = std::error::Error::source(&e);
+            while let Some(s) = source {
+                msg.push_str(": ");
+                msg.push_str(&s.to_string());
+                source = s.source();
+            }
+            ClientError::Unreachable(msg)
+        }
+    }
+}
+
+pub type Result<T, E = ClientError> = std::result::Result<T, E>;
+
+/// One scene file and the assets it references, ready to submit.
+#[derive(Clone, Debug, Default)]
+pub struct Submission {
+    pub spec: JobSpec,
+    /// The scene's file name (reported in scene errors).
+    pub scene_file: String,
+    pub scene: Vec<u8>,
+    /// (path as the scene writes it, content)
+    pub assets: Vec<(String, Vec<u8>)>,
+}
+
+#[derive(Clone, Debug)]
+pub struct Client {
+    http: reqwest::Client,
+    base: String,
+    token: Option<String>,
+}
+
+impl Client {
+    /// `base` is the coordinator's root URL, such as `http://10.0.0.5:7878`.
+    pub fn new(base: &str, token: Option<String>) -> Result<Self> {
+        let base = base.trim_end_matches('/').to_string();
+        if !(base.starts_with("http://") || base.starts_with("https://")) {
+            return Err(ClientError::Protocol(format!(
+                "coordinator URL {base:?} must start with http:// or https://"
+            )));
+        }
+        let http = reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(5))
+            .tcp_nodelay(true)
+            .pool_max_idle_per_host(64)
+            .build()
+            .map_err(|e| ClientError::Protocol(e.to_string()))?;
+        Ok(Self { http, base, token })
+    }
+
+    pub fn base_url(&self) -> &str {
+        &self.base
+    }
+
+    /// A request to `path` under [`API_PREFIX`].
+    fn request(&self, method: Method, path: &str) -> RequestBuilder {
+        self.request_url(method, format!("{}{API_PREFIX}{path}", self.base))
+    }
+
+    fn request_url(&self, method: Method, url: String) -> RequestBuilder {
+        let mut req = self
+            .http
+            .request(method, url)
+            .timeout(Duration::from_secs(60));
+        if let Some(token) = &self.token {
+            req = req.header(header::AUTHORIZATION, format!("Bearer {token}"));
+        }
+        req
+    }
+
+    /// Turns a non-success status into the matching error.
+    async fn check(resp: Response) -> Result<Response> {
+        let status = resp.status();
+        if status.is_success() {
+            return Ok(resp);
+        }
+        let text = resp.text().await.unwrap_or_default();
+        let body: ApiError =
+            serde_json::from_str(&text).unwrap_or_else(|_| ApiError::new(text.trim()));
+        let message = if body.error.is_empty() {
+            status.to_string()
+        } else {
+            body.error.clone()
+        };
+        if status == StatusCode::CONFLICT {
+            return Err(ClientError::Stale(message));
+        }
+        Err(ClientError::Api {
+            status: status.as_u16(),
+            message,
+            body,
+        })
+    }
+
+    async fn json<T: DeserializeOwned>(req: RequestBuilder) -> Result<T> {
+        let resp = Self::check(req.send().await?).await?;
+        let bytes = resp.bytes().await?;
+        serde_json::from_slice(&bytes).map_err(|e| ClientError::Protocol(e.to_string()))
+    }
+
+    pub async fn healthz(&self) -> Result<()> {
+        let req = self.request_url(Method::GET, format!("{}/healthz", self.base));
+        Self::check(req.send().await?).await?;
+        Ok(())
+    }
+
+    /// Asks for a tile, waiting up to `wait_ms` on the server for one to turn up.
+    pub async fn lease(&self, req: &LeaseRequest) -> Result<Option<Lease>> {
+        let resp = self
+            .request(Method::POST, "/leases")
+            .timeout(Duration::from_millis(req.wait_ms) + Duration::from_secs(30))
+            .json(req)
+            .send()
+            .await?;
+        let resp = Self::check(resp).await?;
+        if resp.status() == StatusCode::NO_CONTENT {
+            return Ok(None);
+        }
+        let bytes = resp.bytes().await?;
+        serde_json::from_slice(&bytes)
+            .map(Some)
+            .map_err(|e| ClientError::Protocol(e.to_string()))
+    }
+
+    pub async fn heartbeat(&self, lease_id: u64) -> Result<LeaseStatus> {
+        Self::json(
+            self.request(Method::POST, &format!("/leases/{lease_id}/heartbeat"))
+                .timeout(Duration::from_secs(10)),
+        )
+        .await
+    }
+
+    /// Posts a finished tile's pixels (see [`crate::protocol::pixels_to_bytes`]).
+    pub async fn complete(&self, lease_id: u64, pixels: Vec<u8>) -> Result<Completion> {
+        Self::json(
+            self.request(Method::PUT, &format!("/leases/{lease_id}/pixels"))
+                .header(header::CONTENT_TYPE, "application/octet-stream")
+                .body(pixels),
+        )
+        .await
+    }
+
+    pub async fn fail(&self, lease_id: u64, report: &FailureReport) -> Result<JobInfo> {
+        Self::json(
+            self.request(Method::POST, &format!("/leases/{lease_id}/failure"))
+                .json(report),
+        )
+        .await
+    }
+
+    /// Gives a tile back unfinished (the worker is stopping); it is requeued at once.
+    pub async fn hand_back(&self, lease_id: u64) -> Result<()> {
+        let req = self
+            .request(Method::DELETE, &format!("/leases/{lease_id}"))
+            .timeout(Duration::from_secs(5));
+        Self::check(req.send().await?).await?;
+        Ok(())
+    }
+
+    pub async fn bundle(&self, job_id: u64) -> Result<Bundle> {
+        Self::json(self.request(Method::GET, &format!("/jobs/{job_id}/bundle"))).await
+    }
+
+    pub async fn blob(&self, hash: &str) -> Result<Vec<u8>> {
+        let resp = self
+            .request(Method::GET, &format!("/blobs/{hash}"))
+            .send()
+            .await?;
+        Ok(Self::check(resp).await?.bytes().await?.to_vec())
+    }
+
+    /// Those of `hashes` whose content the coordinator does not hold.
+    pub async fn missing_blobs(&self, hashes: &[String]) -> Result<Vec<String>> {
+        Self::json(self.request(Method::POST, "/blobs/missing").json(hashes)).await
+    }
+
+    /// Submits a job. Assets the coordinator already holds are sent as references to their
+    /// hash instead of their bytes.
+    pub async fn submit(&self, sub: &Submission) -> Result<JobInfo> {
+        let hashes: Vec<String> = sub
+            .assets
+            .iter()
+            .map(|(_, bytes)| crate::hash_hex(bytes))
+            .collect();
+        let missing = if hashes.is_empty() {
+            Vec::new()
+        } else {
+            self.missing_blobs(&hashes).await?
+        };
+        let spec =
+            serde_json::to_vec(&sub.spec).map_err(|e| ClientError::Protocol(e.to_string()))?;
+        // Part names are asset paths, sent as written (the default encoding mangles '/').
+        let mut form = reqwest::multipart::Form::new()
+            .percent_encode_noop()
+            .part(
+                PART_JOB,
+                reqwest::multipart::Part::bytes(spec).mime_str("application/json")?,
+            )
+            .part(
+                PART_SCENE,
+                reqwest::multipart::Part::bytes(sub.scene.clone())
+                    .file_name(sub.scene_file.clone()),
+            );
+        for ((path, bytes), hash) in sub.assets.iter().zip(hashes) {
+            let part = if missing.contains(&hash) {
+                reqwest::multipart::Part::bytes(bytes.clone()).file_name(path.clone())
+            } else {
+                reqwest::multipart::Part::bytes(hash.into_bytes())
+                    .file_name(path.clone())
+                    .mime_str(CONTENT_TYPE_BLOB_REF)?
+            };
+            form = form.part(path.clone(), part);
+        }
+        Self::json(self.request(Method::POST, "/jobs").multipart(form)).await
+    }
+
+    pub async fn job(&self, id: u64) -> Result<JobInfo> {
+        Self::json(self.request(Method::GET, &format!("/jobs/{id}"))).await
+    }
+
+    pub async fn jobs(&self) -> Result<Vec<JobInfo>> {
+        Self::json(self.request(Method::GET, "/jobs")).await
+    }
+
+    pub async fn cancel(&self, id: u64) -> Result<JobInfo> {
+        Self::json(self.request(Method::DELETE, &format!("/jobs/{id}"))).await
+    }
+
+    /// The job's PNG: final when it is done, partial while it runs.
+    pub async fn image(&self, id: u64) -> Result<Vec<u8>> {
+        let resp = self
+            .request(Method::GET, &format!("/jobs/{id}/image"))
+            .send()
+            .await?;
+        Ok(Self::check(resp).await?.bytes().await?.to_vec())
+    }
+}

@@ -1,0 +1,334 @@
+//! The farm's wire types: every JSON body the coordinator and its clients exchange, and the
+//! routes with the status codes each answers. `docs/api.md` is the prose version of this file.
+//!
+//! It lives in the worker crate (the bottom of the dependency graph, beside the client) so
+//! that the worker compiles neither axum nor SQLite, while the coordinator, which depends on
+//! the worker for its embedded `render` command, serves exactly these types.
+//!
+//! Routes (all under [`API_PREFIX`] but `/healthz` and `/metrics`):
+//!
+//! | route | answers |
+//! | --- | --- |
+//! | `POST /jobs` (multipart: `job` JSON [`JobSpec`], `scene`, one part per asset) | 201 [`JobInfo`]; 400 [`ApiError`] bad scene, settings or path; 413 too large |
+//! | `GET /jobs` | 200 `Vec<JobInfo>`, oldest first |
+//! | `GET /jobs/{id}` | 200 [`JobInfo`]; 404 |
+//! | `DELETE /jobs/{id}` | 200 [`JobInfo`] (cancelled); 404; 409 already finished |
+//! | `POST /jobs/{id}/retry` | 200 [`JobInfo`] (failed tiles requeued); 404; 409 not failed |
+//! | `GET /jobs/{id}/image` | 200 `image/png` (partial while running); 404 |
+//! | `GET /jobs/{id}/bundle` | 200 [`Bundle`]; 404 |
+//! | `GET /blobs/{hash}` | 200 bytes; 404 |
+//! | `POST /blobs/missing` | 200 `Vec<String>`: those of the given hashes the coordinator lacks |
+//! | `POST /leases` ([`LeaseRequest`]) | 200 [`Lease`]; 204 nothing to do within `wait_ms` |
+//! | `POST /leases/{id}/heartbeat` | 200 [`LeaseStatus`]; 409 stale or unknown lease |
+//! | `PUT /leases/{id}/pixels` (f32 LE) | 200 [`Completion`]; 400 wrong size; 409 stale |
+//! | `POST /leases/{id}/failure` ([`FailureReport`]) | 200 [`JobInfo`]; 409 stale |
+//! | `DELETE /leases/{id}` | 204 handed back; 409 stale |
+//!
+//! Any route answers 401 without the right bearer token when the coordinator has one.
+
+use serde::{Deserialize, Serialize};
+use tracer_core::{RenderSettings, TileRect};
+
+/// Every JSON route sits under this prefix.
+pub const API_PREFIX: &str = "/api/v1";
+
+/// The default tile edge in pixels.
+pub const DEFAULT_TILE_SIZE: u32 = 64;
+
+/// Multipart part names of a job submission. Every other part is an asset, named by the path
+/// the scene file writes.
+pub const PART_JOB: &str = "job";
+pub const PART_SCENE: &str = "scene";
+/// An asset part with this content type carries only the hex hash of content the coordinator
+/// already holds (see `POST /blobs/missing`), so an unchanged asset is never uploaded twice.
+pub const CONTENT_TYPE_BLOB_REF: &str = "application/vnd.tessera.blob-ref";
+
+/// What a job renders besides its scene: the JSON of the `job` part.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct JobSpec {
+    /// A label for listings; defaults to the scene's file name.
+    pub name: Option<String>,
+    pub render: RenderSettings,
+    /// Tiles are at most `tile_size`×`tile_size` pixels.
+    pub tile_size: u32,
+}
+
+impl Default for JobSpec {
+    fn default() -> Self {
+        Self {
+            name: None,
+            render: RenderSettings::default(),
+            tile_size: DEFAULT_TILE_SIZE,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobState {
+    /// No tile has been leased yet.
+    Queued,
+    Running,
+    Done,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub fn is_finished(self) -> bool {
+        matches!(
+            self,
+            JobState::Done | JobState::Failed | JobState::Cancelled
+        )
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Done => "done",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<JobState> {
+        [
+            JobState::Queued,
+            JobState::Running,
+            JobState::Done,
+            JobState::Failed,
+            JobState::Cancelled,
+        ]
+        .into_iter()
+        .find(|state| state.as_str() == s)
+    }
+}
+
+/// One tile's failure on one worker.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TileFailure {
+    pub tile: u32,
+    pub worker: String,
+    pub error: String,
+}
+
+/// A job's progress, as `GET /jobs/{id}` reports it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JobInfo {
+    pub id: u64,
+    pub name: String,
+    pub scene_file: String,
+    pub state: JobState,
+    pub spec: JobSpec,
+    pub tiles_total: u32,
+    pub tiles_done: u32,
+    /// Tiles some worker holds a lease on right now.
+    pub tiles_running: u32,
+    /// Seconds since the first tile was leased (until the job finished).
+    pub elapsed_s: Option<f64>,
+    /// Remaining seconds at the rate tiles have finished so far.
+    pub eta_s: Option<f64>,
+    /// Why the job failed, when it did.
+    pub error: Option<String>,
+    /// Every tile failure so far, oldest first.
+    pub failures: Vec<TileFailure>,
+    /// Unix milliseconds.
+    pub created_ms: u64,
+}
+
+/// `POST /leases`: ask for a tile. Asking again while holding a lease answers the same lease.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LeaseRequest {
+    /// Unique per worker process: leases, failures and metrics are keyed by it.
+    pub worker: String,
+    /// How long the coordinator may hold the request open waiting for work (long poll);
+    /// capped by the coordinator.
+    #[serde(default)]
+    pub wait_ms: u64,
+}
+
+/// A tile assignment. Every later message about it carries `lease_id`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Lease {
+    pub lease_id: u64,
+    pub job_id: u64,
+    pub tile: u32,
+    pub rect: TileRect,
+    pub settings: RenderSettings,
+    /// The lease lapses this long after it was granted or last extended.
+    pub expires_in_ms: u64,
+    /// How often the worker should heartbeat (well inside `expires_in_ms`).
+    pub heartbeat_ms: u64,
+}
+
+/// The answer to a heartbeat: the lease's new expiry.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LeaseStatus {
+    pub expires_in_ms: u64,
+}
+
+/// The answer to a tile's accepted pixels: the job's progress. (A result for a tile that
+/// another worker finished first gets 409 like any stale lease: the first result wins.)
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Completion {
+    pub tiles_done: u32,
+    pub tiles_total: u32,
+}
+
+/// `POST /leases/{id}/failure`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FailureReport {
+    pub error: String,
+    /// The scene itself could not be loaded: no other worker will do better, so the job fails
+    /// at once instead of after three workers.
+    #[serde(default)]
+    pub scene: bool,
+}
+
+/// What a worker needs to load a job's scene: every file by content hash.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Bundle {
+    pub job_id: u64,
+    pub scene_file: String,
+    pub scene_hash: String,
+    pub assets: Vec<BundleFile>,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BundleFile {
+    /// The path exactly as the scene writes it.
+    pub path: String,
+    /// Lower-case hex SHA-256 of the content.
+    pub hash: String,
+    pub size: u64,
+}
+
+/// Every 4xx/5xx JSON body. Scene errors carry their location.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ApiError {
+    pub error: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub line: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub column: Option<u32>,
+}
+
+impl ApiError {
+    pub fn new(error: impl Into<String>) -> Self {
+        Self {
+            error: error.into(),
+            ..Self::default()
+        }
+    }
+}
+
+/// Encodes a tile's linear pixels for `PUT /leases/{id}/pixels`: f32 little-endian, r g b per
+/// pixel, top row first.
+pub fn pixels_to_bytes(pixels: &[f32]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(pixels.len() * 4);
+    for p in pixels {
+        out.extend_from_slice(&p.to_le_bytes());
+    }
+    out
+}
+
+/// Decodes [`pixels_to_bytes`], checking the size against a `width`×`height` tile.
+pub fn pixels_from_bytes(bytes: &[u8], rect: TileRect) -> Result<Vec<f32>, String> {
+    let expected = rect.pixel_count() * 3 * 4;
+    if bytes.len() != expected {
+        return Err(format!(
+            "a {}x{} tile is {expected} bytes of f32 RGB, got {}",
+            rect.width,
+            rect.height,
+            bytes.len()
+        ));
+    }
+    Ok(bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect())
+}
+
+/// Checks a path a scene uses for an asset: relative, `/`-separated, with no `..`, `.` or empty
+/// components, so it can never name anything outside the bundle.
+pub fn check_bundle_path(path: &str) -> Result<(), String> {
+    if path.is_empty() {
+        return Err("an asset path is empty".into());
+    }
+    if path.starts_with('/') || path.starts_with('\\') || path.contains(':') {
+        return Err(format!(
+            "asset path {path:?} is absolute; bundle paths must be relative"
+        ));
+    }
+    if path.contains('\\') || path.contains('\0') {
+        return Err(format!("asset path {path:?} must use '/' separators"));
+    }
+    for part in path.split('/') {
+        match part {
+            ".." => return Err(format!("asset path {path:?} leaves the bundle ('..')")),
+            "" | "." => return Err(format!("asset path {path:?} has an empty or '.' component")),
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pixels_round_trip_and_sizes_are_checked() {
+        let rect = TileRect::new(0, 0, 2, 1);
+        let px = vec![0.0, 0.5, 1.0, f32::MAX, -0.0, 1e-30];
+        let bytes = pixels_to_bytes(&px);
+        assert_eq!(bytes.len(), 24);
+        let back = pixels_from_bytes(&bytes, rect).unwrap();
+        assert_eq!(
+            back.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            px.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+        );
+        let err = pixels_from_bytes(&bytes[..20], rect).unwrap_err();
+        assert!(err.contains("24 bytes"), "{err}");
+    }
+
+    #[test]
+    fn bundle_paths_stay_inside_the_bundle() {
+        for ok in ["images/a.png", "a.obj", "models/x/y.obj", "..a/b"] {
+            assert!(check_bundle_path(ok).is_ok(), "{ok}");
+        }
+        for bad in [
+            "/etc/passwd",
+            "../x.png",
+            "images/../../x",
+            "a//b",
+            "./a",
+            "",
+            "C:/x",
+            "a\\b",
+        ] {
+            assert!(check_bundle_path(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn job_spec_defaults_and_rejects_unknown_fields() {
+        let spec: JobSpec = serde_json::from_str(r#"{"render": {"width": 16}}"#).unwrap();
+        assert_eq!(spec.tile_size, DEFAULT_TILE_SIZE);
+        assert_eq!(spec.render.width, 16);
+        assert_eq!(spec.render.height, 600);
+        assert!(serde_json::from_str::<JobSpec>(r#"{"tile": 3}"#).is_err());
+    }
+
+    #[test]
+    fn job_states_round_trip_through_their_names() {
+        for s in ["queued", "running", "done", "failed", "cancelled"] {
+            assert_eq!(JobState::parse(s).unwrap().as_str(), s);
+        }
+        assert_eq!(JobState::parse("nope"), None);
+    }
+}

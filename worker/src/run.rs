@@ -1,0 +1,406 @@
+//! The pull loop: lease → cached scene → render on the worker's thread pool while
+//! heartbeating → complete. Stateless: everything it needs comes with the lease and the bundle.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tokio::sync::watch;
+use tracer_core::{Image, Renderer};
+
+use crate::client::{Client, ClientError};
+use crate::protocol::{pixels_to_bytes, FailureReport, Lease, LeaseRequest};
+use crate::scenes::{LoadError, SceneCache};
+
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    /// Unique per worker process; failures and leases are keyed by it.
+    pub name: String,
+    /// Render threads (the worker's own rayon pool).
+    pub threads: usize,
+    /// How long one lease request may wait on the coordinator for work.
+    pub poll_wait: Duration,
+    /// The longest pause between retries while the coordinator is unreachable.
+    pub max_backoff: Duration,
+}
+
+impl WorkerConfig {
+    pub fn new(name: impl Into<String>, threads: usize) -> Self {
+        Self {
+            name: name.into(),
+            threads: threads.max(1),
+            poll_wait: Duration::from_secs(20),
+            max_backoff: Duration::from_secs(5),
+        }
+    }
+}
+
+/// The name a worker gets without `--name`: host and process id.
+pub fn default_name() -> String {
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|h| h.trim().to_string())
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "worker".into());
+    format!("{host}-{}", std::process::id())
+}
+
+/// A stop request that remembers it has fired.
+#[derive(Clone, Debug)]
+pub struct Shutdown(watch::Receiver<bool>);
+
+impl Shutdown {
+    /// The sender stops everything holding a clone of the receiver (`send(true)`).
+    pub fn new() -> (watch::Sender<bool>, Shutdown) {
+        let (tx, rx) = watch::channel(false);
+        (tx, Shutdown(rx))
+    }
+
+    pub fn is_set(&self) -> bool {
+        *self.0.borrow()
+    }
+
+    /// Resolves once a stop is requested; never, if the sender is dropped without one.
+    pub async fn wait(&mut self) {
+        if self.0.wait_for(|stop| *stop).await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    }
+}
+
+/// What one worker did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WorkerStats {
+    pub rendered: u64,
+    pub failed: u64,
+    /// Tiles given up because their lease went stale (cancelled job, a copy finished first).
+    pub dropped: u64,
+    pub handed_back: u64,
+}
+
+pub struct Worker {
+    client: Client,
+    config: WorkerConfig,
+    scenes: Arc<SceneCache>,
+    pool: Arc<rayon::ThreadPool>,
+}
+
+/// Why a render was cancelled.
+#[derive(Debug, PartialEq)]
+enum Stop {
+    Stale(String),
+    Shutdown,
+}
+
+impl Worker {
+    pub fn new(
+        client: Client,
+        config: WorkerConfig,
+        scenes: Arc<SceneCache>,
+    ) -> Result<Self, String> {
+        let name = config.name.clone();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads)
+            .thread_name(move |i| format!("{name}-render-{i}"))
+            .build()
+            .map_err(|e| e.to_string())?;
+        Ok(Self {
+            client,
+            config,
+            scenes,
+            pool: Arc::new(pool),
+        })
+    }
+
+    /// Pulls and renders tiles until `shutdown` fires. Returns an error only for problems no
+    /// retry can fix (a wrong token, a refused request).
+    pub async fn run(&self, mut shutdown: Shutdown) -> Result<WorkerStats, ClientError> {
+        let mut stats = WorkerStats::default();
+        let mut backoff = Backoff::new(Duration::from_millis(100), self.config.max_backoff);
+        let request = LeaseRequest {
+            worker: self.config.name.clone(),
+            wait_ms: self.config.poll_wait.as_millis() as u64,
+        };
+        let mut reported_down = false;
+        while !shutdown.is_set() {
+            let answer = tokio::select! {
+                answer = self.client.lease(&request) => answer,
+                _ = shutdown.wait() => break,
+            };
+            match answer {
+                Ok(lease) => {
+                    if reported_down {
+                        tracing::info!("coordinator {} is back", self.client.base_url());
+                        reported_down = false;
+                    }
+                    backoff.reset();
+                    if let Some(lease) = lease {
+                        self.work(lease, &mut shutdown, &mut stats, &mut backoff)
+                            .await;
+                    }
+                }
+                Err(e) if e.is_transient() => {
+                    let pause = backoff.next_delay();
+                    if !reported_down {
+                        tracing::warn!("{e}; retrying with back-off");
+                        reported_down = true;
+                    }
+                    tokio::select! {
+                        _ = tokio::time::sleep(pause) => {}
+                        _ = shutdown.wait() => break,
+                    }
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(stats)
+    }
+
+    async fn work(
+        &self,
+        lease: Lease,
+        shutdown: &mut Shutdown,
+        stats: &mut WorkerStats,
+        backoff: &mut Backoff,
+    ) {
+        let tag = format!(
+            "job {} tile {} ({}x{} at {},{})",
+            lease.job_id,
+            lease.tile,
+            lease.rect.width,
+            lease.rect.height,
+            lease.rect.x,
+            lease.rect.y
+        );
+        let scene = match self.scenes.get(&self.client, lease.job_id).await {
+            Ok(scene) => scene,
+            Err(LoadError::Scene(error)) => {
+                tracing::error!("{tag}: the scene does not load: {error}");
+                self.report_failure(&lease, &tag, error, true, stats).await;
+                return;
+            }
+            Err(LoadError::Fetch(error)) => {
+                // Asking for work again answers this same lease, so nothing is lost.
+                tracing::warn!("{tag}: {error}");
+                tokio::select! {
+                    _ = tokio::time::sleep(backoff.next_delay()) => {}
+                    _ = shutdown.wait() => {}
+                }
+                if shutdown.is_set() {
+                    self.hand_back(&lease, &tag, stats).await;
+                }
+                return;
+            }
+        };
+
+        let start = Instant::now();
+        let cancel = Arc::new(AtomicBool::new(false));
+        let render = {
+            let (pool, cancel, settings, rect) = (
+                self.pool.clone(),
+                cancel.clone(),
+                lease.settings.clone(),
+                lease.rect,
+            );
+            tokio::task::spawn_blocking(move || {
+                pool.install(|| -> Result<Option<Image>, String> {
+                    let renderer = Renderer::new(&scene, &settings)?;
+                    Ok(renderer.render_tile(rect, &cancel))
+                })
+            })
+        };
+        tokio::pin!(render);
+        let beat = Duration::from_millis(lease.heartbeat_ms.max(50));
+        let mut ticker = tokio::time::interval_at(tokio::time::Instant::now() + beat, beat);
+        ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut stop: Option<Stop> = None;
+        let outcome = loop {
+            tokio::select! {
+                outcome = &mut render => break outcome,
+                _ = ticker.tick(), if stop.is_none() => {
+                    match self.client.heartbeat(lease.lease_id).await {
+                        Ok(_) => {}
+                        Err(ClientError::Stale(why)) => {
+                            cancel.store(true, Ordering::Relaxed);
+                            stop = Some(Stop::Stale(why));
+                        }
+                        // Keep rendering through a coordinator restart; the result is retried.
+                        Err(e) => tracing::debug!("{tag}: heartbeat failed: {e}"),
+                    }
+                }
+                _ = shutdown.wait(), if stop.is_none() => {
+                    cancel.store(true, Ordering::Relaxed);
+                    stop = Some(Stop::Shutdown);
+                }
+            }
+        };
+        let seconds = start.elapsed().as_secs_f64();
+        let image = match outcome {
+            Ok(Ok(Some(image))) => image,
+            Ok(Ok(None)) => {
+                match stop {
+                    Some(Stop::Stale(why)) => {
+                        stats.dropped += 1;
+                        tracing::info!("{tag}: dropped after {seconds:.3}s: {why}");
+                    }
+                    _ => self.hand_back(&lease, &tag, stats).await,
+                }
+                return;
+            }
+            Ok(Err(error)) => {
+                self.report_failure(&lease, &tag, error, false, stats).await;
+                return;
+            }
+            Err(join_error) => {
+                let error = panic_message(join_error);
+                self.report_failure(&lease, &tag, error, false, stats).await;
+                return;
+            }
+        };
+        let bytes = pixels_to_bytes(&image.pixels);
+        // Retry through network trouble: the pixels are worth keeping, and a restarted
+        // coordinator honours leases granted before it went down.
+        let mut retry = Backoff::new(Duration::from_millis(100), self.config.max_backoff);
+        loop {
+            match self.client.complete(lease.lease_id, bytes.clone()).await {
+                Ok(done) => {
+                    stats.rendered += 1;
+                    tracing::info!(
+                        "{tag}: rendered in {seconds:.3}s, accepted ({}/{} done)",
+                        done.tiles_done,
+                        done.tiles_total
+                    );
+                    return;
+                }
+                Err(ClientError::Stale(why)) => {
+                    stats.rendered += 1;
+                    stats.dropped += 1;
+                    tracing::info!("{tag}: rendered in {seconds:.3}s, dropped: {why}");
+                    return;
+                }
+                Err(e) if e.is_transient() && !shutdown.is_set() => {
+                    tracing::warn!("{tag}: sending the pixels failed: {e}; retrying");
+                    tokio::select! {
+                        _ = tokio::time::sleep(retry.next_delay()) => {}
+                        _ = shutdown.wait() => {}
+                    }
+                }
+                Err(e) => {
+                    stats.rendered += 1;
+                    tracing::error!("{tag}: rendered in {seconds:.3}s, not delivered: {e}");
+                    return;
+                }
+            }
+        }
+    }
+
+    async fn report_failure(
+        &self,
+        lease: &Lease,
+        tag: &str,
+        error: String,
+        scene: bool,
+        stats: &mut WorkerStats,
+    ) {
+        stats.failed += 1;
+        tracing::error!("{tag}: failed: {error}");
+        let report = FailureReport { error, scene };
+        if let Err(e) = self.client.fail(lease.lease_id, &report).await {
+            tracing::warn!("{tag}: could not report the failure: {e}");
+        }
+    }
+
+    async fn hand_back(&self, lease: &Lease, tag: &str, stats: &mut WorkerStats) {
+        match self.client.hand_back(lease.lease_id).await {
+            Ok(()) => {
+                stats.handed_back += 1;
+                tracing::info!("{tag}: handed back");
+            }
+            Err(e) => tracing::warn!("{tag}: could not hand back ({e}); its lease will lapse"),
+        }
+    }
+}
+
+fn panic_message(e: tokio::task::JoinError) -> String {
+    match e.try_into_panic() {
+        Ok(payload) => {
+            let text = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
+            format!("rendering panicked: {text}")
+        }
+        Err(e) => format!("rendering was aborted: {e}"),
+    }
+}
+
+/// Exponential back-off with jitter, so a farm of workers does not retry in lock step.
+pub struct Backoff {
+    first: Duration,
+    max: Duration,
+    current: Duration,
+    rng: u64,
+}
+
+impl Backoff {
+    pub fn new(first: Duration, max: Duration) -> Self {
+        let seed = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos() as u64)
+            .unwrap_or(1)
+            ^ ((std::process::id() as u64) << 32);
+        Self {
+            first,
+            max: max.max(first),
+            current: first,
+            rng: seed | 1,
+        }
+    }
+
+    pub fn reset(&mut self) {
+        self.current = self.first;
+    }
+
+    /// The next pause: the current step scaled by a random factor in [0.5, 1.0), after
+    /// which the step doubles up to the maximum.
+    pub fn next_delay(&mut self) -> Duration {
+        // xorshift64: jitter needs no quality, only independence between workers.
+        self.rng ^= self.rng << 13;
+        self.rng ^= self.rng >> 7;
+        self.rng ^= self.rng << 17;
+        let factor = 0.5 + (self.rng >> 11) as f64 / (1u64 << 53) as f64 * 0.5;
+        let delay = self.current.mul_f64(factor);
+        self.current = (self.current * 2).min(self.max);
+        delay
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_up_to_its_cap_with_jitter() {
+        let mut b = Backoff::new(Duration::from_millis(100), Duration::from_millis(400));
+        let d: Vec<Duration> = (0..5).map(|_| b.next_delay()).collect();
+        let steps = [100, 200, 400, 400, 400];
+        for (delay, step) in d.iter().zip(steps) {
+            let step = Duration::from_millis(step);
+            assert!(*delay >= step / 2 && *delay < step, "{delay:?} vs {step:?}");
+        }
+        b.reset();
+        assert!(b.next_delay() < Duration::from_millis(100));
+    }
+
+    #[tokio::test]
+    async fn shutdown_fires_once_for_every_clone() {
+        let (tx, shutdown) = Shutdown::new();
+        let mut a = shutdown.clone();
+        assert!(!a.is_set());
+        tx.send(true).unwrap();
+        a.wait().await;
+        assert!(shutdown.is_set());
+    }
+}
