@@ -403,7 +403,8 @@ impl Farm {
         });
         // Jobs whose last tile landed just before a crash.
         for id in finished {
-            farm.assemble(id)?;
+            // A failure marks the job failed (and is logged); the farm still opens.
+            let _ = farm.assemble(id);
         }
         Ok(farm)
     }
@@ -679,9 +680,30 @@ impl Farm {
         Ok((answer, complete.then_some(job_id)))
     }
 
-    /// Writes a finished job's PNG from its tiles and marks it done. Blocking (file I/O and
-    /// PNG encoding): call from a blocking thread.
+    /// Writes a finished job's PNG from its tiles and marks it done; if the image cannot be
+    /// built (a tile file unreadable, the disk full) the job fails with that error rather than
+    /// staying "running" forever. Blocking (file I/O and PNG encoding): call from a blocking
+    /// thread.
     pub fn assemble(&self, job_id: u64) -> Result<()> {
+        match self.write_image(job_id) {
+            Ok(()) => self.mark_done(job_id),
+            Err(FarmError::NotFound(e)) => Err(FarmError::NotFound(e)),
+            Err(e) => {
+                let error = format!("assembling the image failed: {e}");
+                tracing::error!("job {job_id}: {error}");
+                let now = self.now_ms();
+                let mut state = self.lock();
+                if !state.job(job_id)?.is_active() {
+                    return Ok(());
+                }
+                state.job_mut(job_id)?.assembling = false;
+                state.finish_job(job_id, JobState::Failed, Some(error), now, "the job failed")?;
+                Err(e)
+            }
+        }
+    }
+
+    fn write_image(&self, job_id: u64) -> Result<()> {
         let (width, height, tiles) = {
             let state = self.lock();
             let job = state.job(job_id)?;
@@ -695,6 +717,10 @@ impl Farm {
         };
         let image = self.files.assemble(job_id, width, height, &tiles)?;
         self.files.put_image(job_id, &image.to_png())?;
+        Ok(())
+    }
+
+    fn mark_done(&self, job_id: u64) -> Result<()> {
         let now = self.now_ms();
         let mut state = self.lock();
         let job = state.job_mut(job_id)?;
@@ -1051,6 +1077,31 @@ mod tests {
         let again = f.farm.lease("alive").unwrap().unwrap();
         assert_eq!(again.tile, lease.tile, "the lapsed tile comes first");
         assert!(f.farm.job(job.id).unwrap().failures.is_empty());
+    }
+
+    #[test]
+    fn a_job_whose_image_cannot_be_built_fails_instead_of_running_forever() {
+        let f = fixture(FarmConfig::default());
+        let job = f.farm.submit(new_job("a")).unwrap();
+        for i in 0..4 {
+            let lease = f.farm.lease(&format!("w{i}")).unwrap().unwrap();
+            f.farm
+                .complete(lease.lease_id, &blank(lease.rect, 0.5))
+                .unwrap();
+        }
+        let tile = f._dir.path().join(format!("jobs/{}/tiles/2.f32", job.id));
+        std::fs::remove_file(&tile).unwrap();
+        assert!(f.farm.assemble(job.id).is_err());
+        let info = f.farm.job(job.id).unwrap();
+        assert_eq!(info.state, JobState::Failed);
+        assert!(
+            info.error
+                .as_deref()
+                .unwrap_or("")
+                .contains("assembling the image failed"),
+            "{:?}",
+            info.error
+        );
     }
 
     #[test]
