@@ -18,6 +18,8 @@ pub mod film;
 pub mod geometry;
 pub mod metrics;
 pub mod render;
+#[cfg(feature = "report")]
+pub mod report;
 pub mod sampler;
 pub mod scene;
 pub mod settings;

@@ -1,0 +1,248 @@
+//! Writing an error-against-time report: `report.csv`, `report.md` (the table and the fitted
+//! log–log slope per configuration) and `error_vs_time.png` (one curve per configuration).
+//! Shared by `tracer report` (thread counts) and `coordinator report` (farm worker counts).
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use plotters::prelude::*;
+
+use crate::convergence::{log_log_slope, Measurement};
+use crate::metrics::{mean_flip, rel_mse, rmse, REL_MSE_EPSILON};
+use crate::Image;
+
+/// Seeds the rendered reference apart from every measured render, so its noise is
+/// independent of theirs.
+pub const REFERENCE_SEED_SALT: u64 = 0x5eed_0000_0000_0001;
+
+/// What the report's header says about how it was made.
+#[derive(Clone, Debug)]
+pub struct ReportMeta {
+    pub scene: PathBuf,
+    pub width: u32,
+    pub height: u32,
+    /// How the reference was obtained, e.g. "rendered at 256 spp with an independent seed".
+    pub reference: String,
+    /// A sentence on what the configurations are (threads, farm workers…).
+    pub notes: String,
+}
+
+/// Measures one render against the reference.
+pub fn measure(
+    config: &str,
+    spp: u32,
+    seconds: f64,
+    image: &Image,
+    reference: &Image,
+) -> Result<Measurement, String> {
+    Ok(Measurement {
+        config: config.to_string(),
+        spp,
+        seconds,
+        rmse: rmse(image, reference)?,
+        rel_mse: rel_mse(image, reference)?,
+        mean_flip: mean_flip(image, reference)?,
+    })
+}
+
+/// Writes the three report files into `dir`, creating it.
+pub fn write_report(dir: &Path, meta: &ReportMeta, rows: &[Measurement]) -> Result<(), String> {
+    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+    let write = |name: &str, bytes: &[u8]| {
+        let path = dir.join(name);
+        std::fs::write(&path, bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))
+    };
+    write("report.csv", csv(rows).as_bytes())?;
+    write("report.md", markdown(meta, rows).as_bytes())?;
+    write("error_vs_time.png", &plot(&meta.scene, rows)?)?;
+    Ok(())
+}
+
+/// A CSV field, quoted (RFC 4180) when it holds a comma, quote or line break.
+fn csv_field(text: &str) -> String {
+    if text.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", text.replace('"', "\"\""))
+    } else {
+        text.to_string()
+    }
+}
+
+fn csv(rows: &[Measurement]) -> String {
+    let mut out = String::from("config,spp,seconds,rmse,rel_mse,mean_flip\n");
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "{},{},{:.6},{:.6},{:.6},{:.6}",
+            csv_field(&r.config),
+            r.spp,
+            r.seconds,
+            r.rmse,
+            r.rel_mse,
+            r.mean_flip
+        );
+    }
+    out
+}
+
+fn configs(rows: &[Measurement]) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for r in rows {
+        if !out.contains(&r.config) {
+            out.push(r.config.clone());
+        }
+    }
+    out
+}
+
+fn markdown(meta: &ReportMeta, rows: &[Measurement]) -> String {
+    let mut out = format!(
+        "# Error against time: {}\n\n{}×{}; reference: {}.\n\n{}\n\n\
+         Metrics against the reference: RMSE over linear RGB clamped to [0,1]; relMSE = mean of \
+         (x − ref)² / (ref² + ε) with ε = {REL_MSE_EPSILON}; mean FLIP (NVIDIA's perceptual \
+         metric, 8-bit images, 67 pixels per degree).\n\n\
+         | config | spp | seconds | RMSE | relMSE | mean FLIP |\n|---|---:|---:|---:|---:|---:|\n",
+        meta.scene.display(),
+        meta.width,
+        meta.height,
+        meta.reference,
+        meta.notes
+    );
+    for r in rows {
+        let _ = writeln!(
+            out,
+            "| {} | {} | {:.3} | {:.5} | {:.5} | {:.4} |",
+            r.config, r.spp, r.seconds, r.rmse, r.rel_mse, r.mean_flip
+        );
+    }
+    out += "\nFitted slope of log RMSE against log time (Monte Carlo theory: about −0.5 once \
+            noise dominates; aliasing and bias flatten it at low sample counts):\n\n";
+    for config in configs(rows) {
+        let points: Vec<(f64, f64)> = rows
+            .iter()
+            .filter(|r| r.config == config)
+            .map(|r| (r.seconds, r.rmse))
+            .collect();
+        match log_log_slope(&points) {
+            Some(slope) => {
+                let _ = writeln!(out, "- {config}: **{slope:.3}**");
+            }
+            None => {
+                let _ = writeln!(out, "- {config}: not enough points to fit");
+            }
+        }
+    }
+    out += "\n![error against time](error_vs_time.png)\n";
+    out
+}
+
+/// Finds a TrueType font for the plot's labels (Debian's fonts-dejavu-core).
+fn register_font() -> Result<(), String> {
+    const CANDIDATES: [&str; 3] = [
+        "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+        "/usr/share/fonts/TTF/DejaVuSans.ttf",
+        "/usr/share/fonts/dejavu/DejaVuSans.ttf",
+    ];
+    let path = CANDIDATES
+        .iter()
+        .find(|p| Path::new(p).is_file())
+        .ok_or("no DejaVuSans.ttf found for the plot's labels: install fonts-dejavu-core")?;
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {path}: {e}"))?;
+    // Plotters keeps registered fonts for the life of the process.
+    plotters::style::register_font(
+        "sans-serif",
+        FontStyle::Normal,
+        Box::leak(bytes.into_boxed_slice()),
+    )
+    .map_err(|_| format!("{path} is not a usable font"))
+}
+
+fn plot(scene: &Path, rows: &[Measurement]) -> Result<Vec<u8>, String> {
+    register_font()?;
+    let (w, h) = (900u32, 600u32);
+    let mut buffer = vec![255u8; (w * h * 3) as usize];
+    let positive = |v: f64| v.is_finite() && v > 0.0;
+    let xs: Vec<f64> = rows
+        .iter()
+        .map(|r| r.seconds)
+        .filter(|v| positive(*v))
+        .collect();
+    let ys: Vec<f64> = rows
+        .iter()
+        .map(|r| r.rmse)
+        .filter(|v| positive(*v))
+        .collect();
+    if xs.is_empty() || ys.is_empty() {
+        return Err("no positive times and errors to plot".into());
+    }
+    let range = |v: &[f64]| {
+        let lo = v.iter().cloned().fold(f64::INFINITY, f64::min);
+        let hi = v.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        (lo / 1.5)..(hi * 1.5)
+    };
+    {
+        let root = BitMapBackend::with_buffer(&mut buffer, (w, h)).into_drawing_area();
+        let err = |e: DrawingAreaErrorKind<_>| e.to_string();
+        root.fill(&WHITE).map_err(err)?;
+        let title = format!(
+            "RMSE against render time — {}",
+            scene.file_name().map_or_else(
+                || scene.display().to_string(),
+                |n| n.to_string_lossy().into_owned()
+            )
+        );
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 24))
+            .margin(16)
+            .x_label_area_size(48)
+            .y_label_area_size(72)
+            .build_cartesian_2d(range(&xs).log_scale(), range(&ys).log_scale())
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("wall time (s)")
+            .y_desc("RMSE")
+            .label_style(("sans-serif", 16))
+            .draw()
+            .map_err(err)?;
+        for (i, config) in configs(rows).iter().enumerate() {
+            let color = Palette99::pick(i).to_rgba();
+            let points: Vec<(f64, f64)> = rows
+                .iter()
+                .filter(|r| &r.config == config && positive(r.seconds) && positive(r.rmse))
+                .map(|r| (r.seconds, r.rmse))
+                .collect();
+            chart
+                .draw_series(LineSeries::new(points.clone(), color.stroke_width(2)))
+                .map_err(err)?
+                .label(config.clone())
+                .legend(move |(x, y)| {
+                    PathElement::new([(x, y), (x + 20, y)], color.stroke_width(2))
+                });
+            chart
+                .draw_series(points.iter().map(|&p| Circle::new(p, 4, color.filled())))
+                .map_err(err)?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 16))
+            .draw()
+            .map_err(err)?;
+        root.present().map_err(err)?;
+    }
+    let image = Image::from_pixels(w, h, buffer.iter().map(|&b| b as f32 / 255.0).collect())?;
+    Ok(image.to_png())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::csv_field;
+
+    #[test]
+    fn csv_fields_with_commas_or_quotes_are_quoted() {
+        assert_eq!(csv_field("2 threads"), "2 threads");
+        assert_eq!(csv_field("farm, 2"), "\"farm, 2\"");
+        assert_eq!(csv_field("a \"b\""), "\"a \"\"b\"\"\"");
+    }
+}
