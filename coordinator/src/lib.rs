@@ -7,7 +7,8 @@
 //! - [`api`]: the HTTP routes (`docs/api.md`), authentication and error mapping.
 //! - [`server`]: serving the API and reaping lapsed leases.
 //! - [`config`], [`clock`], [`metrics`]: tunables and limits, injected time, Prometheus text.
-//! - [`cli`]: the `serve`, `render` (embedded farm) and `submit` commands.
+//! - [`embedded`]: an in-process farm (coordinator + local workers) on loopback.
+//! - [`cli`]: the `serve`, `render` (embedded farm), `report` and `submit` commands.
 //!
 //! The wire types live in [`worker::protocol`] (re-exported as [`protocol`]): the worker crate
 //! is the bottom of the graph so the embedded `render` can run in-process workers.
@@ -16,6 +17,7 @@ pub mod api;
 pub mod cli;
 pub mod clock;
 pub mod config;
+pub mod embedded;
 pub mod farm;
 pub mod metrics;
 pub mod server;

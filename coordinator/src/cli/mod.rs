@@ -2,6 +2,7 @@
 //! `submit`. Flags are parsed into plain structs here; the commands build everything else.
 
 mod render;
+mod report;
 mod serve;
 mod submit;
 
@@ -33,6 +34,9 @@ pub enum Command {
     Render(render::RenderArgs),
     /// Submit a scene and its assets to a coordinator; optionally wait and download the image.
     Submit(submit::SubmitArgs),
+    /// Measure error against run time through the embedded farm at several worker counts:
+    /// report.csv, report.md and error_vs_time.png.
+    Report(report::ReportArgs),
 }
 
 /// Render settings, as `tracer render` takes them, plus the farm's tile size.
@@ -126,6 +130,7 @@ pub fn main(cli: Cli) -> ExitCode {
         Command::Serve(args) => serve::run(args),
         Command::Render(args) => render::run(args),
         Command::Submit(args) => submit::run(args),
+        Command::Report(args) => report::run(args),
     }
 }
 

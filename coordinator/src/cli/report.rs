@@ -1,0 +1,253 @@
+//! `coordinator report`: error against run time through the embedded farm, one curve per
+//! worker count (plus the in-process renderer as the baseline), so the farm's overhead and
+//! scaling show on the same plot as the convergence.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use tracer_core::convergence::Measurement;
+use tracer_core::report::{measure, write_report, ReportMeta, REFERENCE_SEED_SALT};
+use tracer_core::{Image, RenderSettings, Renderer, Scene};
+use worker::available_cores;
+use worker::protocol::{JobSpec, JobState, DEFAULT_TILE_SIZE};
+
+use super::submit::{collect_submission, describe};
+use crate::embedded::EmbeddedFarm;
+
+#[derive(Args, Debug)]
+pub struct ReportArgs {
+    /// The scene file; its assets are found beside it (or in its parent folder).
+    pub scene: PathBuf,
+    /// Folder for report.csv, report.md and error_vs_time.png.
+    #[arg(short, long, default_value = "report")]
+    pub output: PathBuf,
+    /// Use this PNG as the reference instead of rendering one.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// Samples per pixel of the rendered reference.
+    #[arg(long, default_value_t = 256)]
+    pub reference_spp: u32,
+    /// Sample counts to measure.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,32")]
+    pub spp: Vec<u32>,
+    /// Farm worker counts to measure, one curve each [default: 1 and every core].
+    #[arg(long, value_delimiter = ',')]
+    pub workers: Vec<usize>,
+    /// Render threads in all, split between the workers [default: every core].
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Leave out the in-process baseline curve.
+    #[arg(long)]
+    pub no_baseline: bool,
+    #[arg(long, default_value_t = 400)]
+    pub width: u32,
+    #[arg(long, default_value_t = 300)]
+    pub height: u32,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Tile edge in pixels.
+    #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
+    pub tile_size: u32,
+}
+
+pub fn run(args: ReportArgs) -> ExitCode {
+    worker::init_logging("warn");
+    match report(args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("coordinator report: {e}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+fn plural(n: usize) -> &'static str {
+    if n == 1 {
+        ""
+    } else {
+        "s"
+    }
+}
+
+/// Every image is compared as the 8-bit PNG a user gets, the reference included, so the
+/// farm's PNGs and the in-process renders are measured alike.
+fn as_delivered(image: &Image) -> Result<Image, String> {
+    Image::from_png_bytes(&image.to_png())
+}
+
+fn report(args: ReportArgs) -> Result<(), String> {
+    if args.spp.is_empty() || args.spp.contains(&0) {
+        return Err("--spp needs sample counts of at least 1".into());
+    }
+    let threads = args.threads.unwrap_or_else(available_cores).max(1);
+    let mut workers = args.workers.clone();
+    if workers.is_empty() {
+        workers = vec![1, threads];
+        workers.dedup();
+    }
+    if let Some(bad) = workers.iter().find(|&&w| w == 0 || w > threads) {
+        return Err(format!(
+            "--workers {bad}: each count must be between 1 and the {threads} thread(s)"
+        ));
+    }
+    let scene = Scene::load(&args.scene).map_err(|e| e.to_string())?;
+    let settings = RenderSettings {
+        width: args.width,
+        height: args.height,
+        seed: args.seed,
+        ..RenderSettings::default()
+    };
+    settings.validate()?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| e.to_string())?;
+
+    let (reference, reference_note) = match &args.reference {
+        Some(path) => {
+            let bytes =
+                std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+            let image = Image::from_png_bytes(&bytes)?;
+            if (image.width, image.height) != (args.width, args.height) {
+                return Err(format!(
+                    "the reference is {}x{}, but the report renders {}x{} (set --width/--height)",
+                    image.width, image.height, args.width, args.height
+                ));
+            }
+            (image, format!("`{}`", path.display()))
+        }
+        None => {
+            eprintln!("rendering the reference at {} spp…", args.reference_spp);
+            let s = RenderSettings {
+                spp: args.reference_spp,
+                seed: args.seed ^ REFERENCE_SEED_SALT,
+                ..settings.clone()
+            };
+            let renderer = Renderer::new(&scene, &s)?;
+            let image = as_delivered(&pool.install(|| renderer.render_image(&|_, _| {})))?;
+            (
+                image,
+                format!(
+                    "rendered in-process at {} spp with an independent seed",
+                    args.reference_spp
+                ),
+            )
+        }
+    };
+
+    let mut rows: Vec<Measurement> = Vec::new();
+    let mut record = |row: Measurement| {
+        eprintln!(
+            "{}, {} spp: {:.3} s, RMSE {:.5}, relMSE {:.5}, FLIP {:.4}",
+            row.config, row.spp, row.seconds, row.rmse, row.rel_mse, row.mean_flip
+        );
+        rows.push(row);
+    };
+
+    if !args.no_baseline {
+        let config = format!("in-process: {threads} thread{}", plural(threads));
+        for &spp in &args.spp {
+            let s = RenderSettings {
+                spp,
+                ..settings.clone()
+            };
+            let renderer = Renderer::new(&scene, &s)?;
+            let started = Instant::now();
+            let image = pool.install(|| renderer.render_image(&|_, _| {}));
+            let seconds = started.elapsed().as_secs_f64();
+            record(measure(
+                &config,
+                spp,
+                seconds,
+                &as_delivered(&image)?,
+                &reference,
+            )?);
+        }
+    }
+
+    let runtime = super::runtime()?;
+    for &n in &workers {
+        let config = format!("farm: {n} worker{}", plural(n));
+        let measured = runtime.block_on(async {
+            let farm = EmbeddedFarm::start(None, n, threads).await?;
+            let mut out = Vec::new();
+            let mut result = Ok(());
+            for &spp in &args.spp {
+                let spec = JobSpec {
+                    name: None,
+                    render: RenderSettings {
+                        spp,
+                        ..settings.clone()
+                    },
+                    tile_size: args.tile_size,
+                };
+                match render_through(&farm, &args.scene, spec).await {
+                    Ok(timed) => out.push((spp, timed)),
+                    Err(e) => {
+                        result = Err(e);
+                        break;
+                    }
+                }
+            }
+            farm.shutdown().await;
+            result.map(|()| out)
+        })?;
+        for (spp, (image, seconds)) in measured {
+            record(measure(&config, spp, seconds, &image, &reference)?);
+        }
+    }
+
+    let meta = ReportMeta {
+        scene: args.scene.clone(),
+        width: args.width,
+        height: args.height,
+        reference: reference_note,
+        notes: format!(
+            "\"farm: N workers\" renders through the embedded farm (a loopback coordinator and \
+             N in-process workers sharing {threads} render thread(s), {} px tiles): seconds run from \
+             submitting the scene and its assets over HTTP to holding the finished PNG. \
+             \"in-process\" is the tracer alone on the same threads. Every image, the reference \
+             included, is compared as the 8-bit PNG a user gets.",
+            args.tile_size
+        ),
+    };
+    write_report(&args.output, &meta, &rows)?;
+    eprintln!(
+        "wrote {}/report.csv, report.md and error_vs_time.png",
+        args.output.display()
+    );
+    Ok(())
+}
+
+/// Submits one job to the farm, waits for it and returns the decoded image with the wall time
+/// from submission to download.
+async fn render_through(
+    farm: &EmbeddedFarm,
+    scene: &std::path::Path,
+    spec: JobSpec,
+) -> Result<(Image, f64), String> {
+    let submission = collect_submission(scene, spec)?;
+    let client = farm.client();
+    let started = Instant::now();
+    let job = client.submit(&submission).await.map_err(|e| describe(&e))?;
+    let finished = loop {
+        let info = client.job(job.id).await.map_err(|e| describe(&e))?;
+        if info.state.is_finished() {
+            break info;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    };
+    if finished.state != JobState::Done {
+        return Err(format!(
+            "job {} ended {}: {}",
+            job.id,
+            finished.state.as_str(),
+            finished.error.unwrap_or_default()
+        ));
+    }
+    let png = client.image(job.id).await.map_err(|e| describe(&e))?;
+    let seconds = started.elapsed().as_secs_f64();
+    Ok((Image::from_png_bytes(&png)?, seconds))
+}

@@ -1,0 +1,134 @@
+//! An in-process farm: a coordinator on a loopback port and local workers sharing one scene
+//! cache. `coordinator render` and `coordinator report` drive it over HTTP exactly as a user
+//! drives a real farm, so what they measure includes the farm's own overhead.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use worker::{Client, ClientError, SceneCache, Shutdown, Worker, WorkerConfig, WorkerStats};
+
+use crate::clock::SystemClock;
+use crate::config::FarmConfig;
+use crate::farm::Farm;
+
+/// A running in-process farm. Call [`EmbeddedFarm::shutdown`] to stop it cleanly.
+pub struct EmbeddedFarm {
+    client: Client,
+    url: String,
+    workers: usize,
+    threads: usize,
+    stop_workers: tokio::sync::watch::Sender<bool>,
+    worker_tasks: Vec<JoinHandle<Result<WorkerStats, ClientError>>>,
+    stop_server: oneshot::Sender<()>,
+    server_task: JoinHandle<std::io::Result<()>>,
+    // Held so the temporary data dir lives as long as the farm.
+    _temp_dir: Option<tempfile::TempDir>,
+}
+
+/// A token nobody else on the machine can guess, for the loopback coordinator.
+fn local_token() -> String {
+    let mut seed = format!("{:?}{}", std::time::SystemTime::now(), std::process::id());
+    if let Ok(random) = std::fs::read("/proc/sys/kernel/random/uuid") {
+        seed.push_str(&String::from_utf8_lossy(&random));
+    }
+    worker::hash_hex(seed.as_bytes())
+}
+
+impl EmbeddedFarm {
+    /// Starts a coordinator on 127.0.0.1 (any free port) with `workers` local workers sharing
+    /// `threads` render threads. Without `data_dir` the farm's data lives in a temporary folder
+    /// removed at shutdown.
+    pub async fn start(
+        data_dir: Option<PathBuf>,
+        workers: usize,
+        threads: usize,
+    ) -> Result<Self, String> {
+        let threads = threads.max(1);
+        let workers = workers.clamp(1, threads);
+        let (data_dir, temp_dir) = match data_dir {
+            Some(dir) => (dir, None),
+            None => {
+                let temp = tempfile::Builder::new()
+                    .prefix("tessera-farm-")
+                    .tempdir()
+                    .map_err(|e| format!("creating a temporary data dir: {e}"))?;
+                (temp.path().to_path_buf(), Some(temp))
+            }
+        };
+        // Every core is already busy with a worker: straggler copies would only compete.
+        let config = FarmConfig {
+            stragglers: false,
+            ..FarmConfig::default()
+        };
+        let farm =
+            Farm::open(&data_dir, config, Arc::new(SystemClock)).map_err(|e| e.to_string())?;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .map_err(|e| format!("binding a loopback port: {e}"))?;
+        let url = format!(
+            "http://{}",
+            listener.local_addr().map_err(|e| e.to_string())?
+        );
+        let token = local_token();
+        let (stop_server, server_stop) = oneshot::channel::<()>();
+        let server_task = tokio::spawn(crate::server::serve(
+            listener,
+            farm,
+            Some(token.clone()),
+            async move {
+                let _ = server_stop.await;
+            },
+        ));
+        let client = Client::new(&url, Some(token)).map_err(|e| e.to_string())?;
+
+        let (stop_workers, shutdown) = Shutdown::new();
+        let scenes = SceneCache::new();
+        let mut worker_tasks = Vec::new();
+        for i in 0..workers {
+            // Spread the threads: the first `threads % workers` workers get one more.
+            let n = threads / workers + usize::from(i < threads % workers);
+            let config = WorkerConfig::new(format!("local-{i}"), n);
+            let worker = Worker::new(client.clone(), config, scenes.clone())?;
+            let shutdown = shutdown.clone();
+            worker_tasks.push(tokio::spawn(async move { worker.run(shutdown).await }));
+        }
+        Ok(Self {
+            client,
+            url,
+            workers,
+            threads,
+            stop_workers,
+            worker_tasks,
+            stop_server,
+            server_task,
+            _temp_dir: temp_dir,
+        })
+    }
+
+    /// A client authorised on this farm.
+    pub fn client(&self) -> &Client {
+        &self.client
+    }
+
+    /// The coordinator's base URL (loopback).
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// How many workers run, and how many render threads they share.
+    pub fn size(&self) -> (usize, usize) {
+        (self.workers, self.threads)
+    }
+
+    /// Stops the workers (each finishes or hands back its tile), then the server.
+    pub async fn shutdown(self) {
+        let _ = self.stop_workers.send(true);
+        for task in self.worker_tasks {
+            let _ = task.await;
+        }
+        let _ = self.stop_server.send(());
+        let _ = self.server_task.await;
+    }
+}

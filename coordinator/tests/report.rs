@@ -1,0 +1,81 @@
+//! `coordinator report` end to end on a small render: the embedded farm at two worker counts
+//! plus the in-process baseline, the three files written, and the error falling as the sample
+//! count rises on every curve.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::process::Command;
+
+#[test]
+fn a_small_farm_report_runs_and_error_falls_with_samples() {
+    let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/scenes/course/cornell_box.scene");
+    let out = std::env::temp_dir().join(format!("tessera-farm-report-{}", std::process::id()));
+    let output = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .arg("report")
+        .arg(&scene)
+        .args([
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--reference-spp",
+            "64",
+            "--spp",
+            "1,4,16",
+            "--workers",
+            "1,2",
+            "--threads",
+            "2",
+            "--tile-size",
+            "16",
+        ])
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    for file in ["report.csv", "report.md", "error_vs_time.png"] {
+        assert!(out.join(file).is_file(), "{file} is missing");
+    }
+    let csv = std::fs::read_to_string(out.join("report.csv")).unwrap();
+    let mut curves: BTreeMap<String, Vec<f64>> = BTreeMap::new();
+    for line in csv.lines().skip(1) {
+        // The label comes first and may be quoted: read the numbers from the right.
+        let fields: Vec<&str> = line.rsplitn(6, ',').collect();
+        curves
+            .entry(fields[5].trim_matches('"').to_string())
+            .or_default()
+            .push(fields[2].parse().unwrap());
+    }
+    let names: Vec<&String> = curves.keys().collect();
+    assert_eq!(
+        names,
+        ["farm: 1 worker", "farm: 2 workers", "in-process: 2 threads"],
+        "{csv}"
+    );
+    for (config, rmse) in &curves {
+        assert!(
+            rmse[0] > rmse[1] && rmse[1] > rmse[2],
+            "{config}: error does not fall: {rmse:?}"
+        );
+    }
+    // The farm renders the same pixels as the tracer: the same errors on every curve.
+    assert_eq!(curves["farm: 1 worker"], curves["in-process: 2 threads"]);
+    assert_eq!(curves["farm: 2 workers"], curves["in-process: 2 threads"]);
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+#[test]
+fn a_report_rejects_impossible_worker_counts() {
+    let output = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .args(["report", "missing.scene", "--workers", "0"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("--workers 0"));
+}
