@@ -9,7 +9,7 @@ use plotters::prelude::*;
 
 use crate::convergence::{log_log_slope, Measurement};
 use crate::metrics::{mean_flip, rel_mse, rmse, REL_MSE_EPSILON};
-use crate::Image;
+use crate::{Image, RenderSettings, Renderer, Scene};
 
 /// Seeds the rendered reference apart from every measured render, so its noise is
 /// independent of theirs.
@@ -25,6 +25,61 @@ pub struct ReportMeta {
     pub reference: String,
     /// A sentence on what the configurations are (threads, farm workers…).
     pub notes: String,
+}
+
+/// The reference a report measures against: the PNG at `path` (which must have the report's
+/// size), or else the scene rendered at `reference_spp` with a seed no measured render uses.
+/// Returns the image and a phrase saying where it came from.
+pub fn reference_image(
+    scene: &Scene,
+    settings: &RenderSettings,
+    path: Option<&Path>,
+    reference_spp: u32,
+    pool: &rayon::ThreadPool,
+) -> Result<(Image, String), String> {
+    if let Some(path) = path {
+        let bytes =
+            std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        let image = Image::from_png_bytes(&bytes)?;
+        if (image.width, image.height) != (settings.width, settings.height) {
+            return Err(format!(
+                "the reference is {}x{}, but the report renders {}x{} (set --width/--height)",
+                image.width, image.height, settings.width, settings.height
+            ));
+        }
+        return Ok((image, format!("`{}`", path.display())));
+    }
+    eprintln!("rendering the reference at {reference_spp} spp…");
+    let s = RenderSettings {
+        spp: reference_spp,
+        seed: settings.seed ^ REFERENCE_SEED_SALT,
+        ..settings.clone()
+    };
+    let (image, _) = timed_render(scene, &s, pool)?;
+    Ok((
+        image,
+        format!("rendered in-process at {reference_spp} spp with an independent seed"),
+    ))
+}
+
+/// Renders the whole image on `pool`; returns it with the wall time of the render alone.
+pub fn timed_render(
+    scene: &Scene,
+    settings: &RenderSettings,
+    pool: &rayon::ThreadPool,
+) -> Result<(Image, f64), String> {
+    let renderer = Renderer::new(scene, settings)?;
+    let started = std::time::Instant::now();
+    let image = pool.install(|| renderer.render_image(&|_, _| {}));
+    Ok((image, started.elapsed().as_secs_f64()))
+}
+
+/// Prints one measurement as a progress line.
+pub fn print_row(row: &Measurement) {
+    eprintln!(
+        "{}, {} spp: {:.3} s, RMSE {:.5}, relMSE {:.5}, FLIP {:.4}",
+        row.config, row.spp, row.seconds, row.rmse, row.rel_mse, row.mean_flip
+    );
 }
 
 /// Measures one render against the reference.

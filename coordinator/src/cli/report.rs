@@ -8,8 +8,10 @@ use std::time::{Duration, Instant};
 
 use clap::Args;
 use tracer_core::convergence::Measurement;
-use tracer_core::report::{measure, write_report, ReportMeta, REFERENCE_SEED_SALT};
-use tracer_core::{Image, RenderSettings, Renderer, Scene};
+use tracer_core::report::{
+    measure, print_row, reference_image, timed_render, write_report, ReportMeta,
+};
+use tracer_core::{Image, RenderSettings, Scene};
 use worker::available_cores;
 use worker::protocol::{JobSpec, JobState, DEFAULT_TILE_SIZE};
 
@@ -105,44 +107,19 @@ fn report(args: ReportArgs) -> Result<(), String> {
         .build()
         .map_err(|e| e.to_string())?;
 
-    let (reference, reference_note) = match &args.reference {
-        Some(path) => {
-            let bytes =
-                std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-            let image = Image::from_png_bytes(&bytes)?;
-            if (image.width, image.height) != (args.width, args.height) {
-                return Err(format!(
-                    "the reference is {}x{}, but the report renders {}x{} (set --width/--height)",
-                    image.width, image.height, args.width, args.height
-                ));
-            }
-            (image, format!("`{}`", path.display()))
-        }
-        None => {
-            eprintln!("rendering the reference at {} spp…", args.reference_spp);
-            let s = RenderSettings {
-                spp: args.reference_spp,
-                seed: args.seed ^ REFERENCE_SEED_SALT,
-                ..settings.clone()
-            };
-            let renderer = Renderer::new(&scene, &s)?;
-            let image = as_delivered(&pool.install(|| renderer.render_image(&|_, _| {})))?;
-            (
-                image,
-                format!(
-                    "rendered in-process at {} spp with an independent seed",
-                    args.reference_spp
-                ),
-            )
-        }
-    };
+    let (reference, reference_note) = reference_image(
+        &scene,
+        &settings,
+        args.reference.as_deref(),
+        args.reference_spp,
+        &pool,
+    )?;
+    // Compared as delivered, like every measured image.
+    let reference = as_delivered(&reference)?;
 
     let mut rows: Vec<Measurement> = Vec::new();
     let mut record = |row: Measurement| {
-        eprintln!(
-            "{}, {} spp: {:.3} s, RMSE {:.5}, relMSE {:.5}, FLIP {:.4}",
-            row.config, row.spp, row.seconds, row.rmse, row.rel_mse, row.mean_flip
-        );
+        print_row(&row);
         rows.push(row);
     };
 
@@ -153,10 +130,7 @@ fn report(args: ReportArgs) -> Result<(), String> {
                 spp,
                 ..settings.clone()
             };
-            let renderer = Renderer::new(&scene, &s)?;
-            let started = Instant::now();
-            let image = pool.install(|| renderer.render_image(&|_, _| {}));
-            let seconds = started.elapsed().as_secs_f64();
+            let (image, seconds) = timed_render(&scene, &s, &pool)?;
             record(measure(
                 &config,
                 spp,

@@ -2,11 +2,12 @@
 //! against a high-sample reference, as a CSV, a Markdown table and a log–log plot.
 
 use std::path::PathBuf;
-use std::time::Instant;
 
 use clap::Args;
-use tracer_core::report::{measure, write_report, ReportMeta, REFERENCE_SEED_SALT};
-use tracer_core::{Image, RenderSettings, Renderer, Scene};
+use tracer_core::report::{
+    measure, print_row, reference_image, timed_render, write_report, ReportMeta,
+};
+use tracer_core::{RenderSettings, Scene};
 
 #[derive(Args, Debug)]
 pub struct ReportArgs {
@@ -45,29 +46,16 @@ pub fn run(args: ReportArgs) -> Result<(), String> {
         seed: args.seed,
         ..RenderSettings::default()
     };
-    let reference = match &args.reference {
-        Some(path) => {
-            let bytes =
-                std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-            let image = Image::from_png_bytes(&bytes)?;
-            if (image.width, image.height) != (args.width, args.height) {
-                return Err(format!(
-                    "the reference is {}x{}, but the report renders {}x{} (set --width/--height)",
-                    image.width, image.height, args.width, args.height
-                ));
-            }
-            image
-        }
-        None => {
-            eprintln!("rendering the reference at {} spp…", args.reference_spp);
-            let s = RenderSettings {
-                spp: args.reference_spp,
-                seed: args.seed ^ REFERENCE_SEED_SALT,
-                ..settings.clone()
-            };
-            Renderer::new(&scene, &s)?.render_image(&|_, _| {})
-        }
-    };
+    let all_cores = rayon::ThreadPoolBuilder::new()
+        .build()
+        .map_err(|e| e.to_string())?;
+    let (reference, reference_note) = reference_image(
+        &scene,
+        &settings,
+        args.reference.as_deref(),
+        args.reference_spp,
+        &all_cores,
+    )?;
 
     let threads = if args.threads.is_empty() {
         vec![rayon::current_num_threads()]
@@ -86,15 +74,9 @@ pub fn run(args: ReportArgs) -> Result<(), String> {
                 spp,
                 ..settings.clone()
             };
-            let renderer = Renderer::new(&scene, &s)?;
-            let started = Instant::now();
-            let image = pool.install(|| renderer.render_image(&|_, _| {}));
-            let seconds = started.elapsed().as_secs_f64();
+            let (image, seconds) = timed_render(&scene, &s, &pool)?;
             let row = measure(&config, spp, seconds, &image, &reference)?;
-            eprintln!(
-                "{config}, {spp} spp: {seconds:.3} s, RMSE {:.5}, relMSE {:.5}, FLIP {:.4}",
-                row.rmse, row.rel_mse, row.mean_flip
-            );
+            print_row(&row);
             rows.push(row);
         }
     }
@@ -103,13 +85,7 @@ pub fn run(args: ReportArgs) -> Result<(), String> {
         scene: args.scene.clone(),
         width: args.width,
         height: args.height,
-        reference: match &args.reference {
-            Some(p) => format!("`{}`", p.display()),
-            None => format!(
-                "rendered at {} spp with an independent seed",
-                args.reference_spp
-            ),
-        },
+        reference: reference_note,
         notes: "Each configuration renders in-process with the given number of threads; \
                 seconds are wall time of the render alone (scene loaded once)."
             .into(),
