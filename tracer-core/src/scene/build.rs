@@ -52,7 +52,8 @@ impl Environment {
     }
 
     /// The colour toward unit direction `d`: −Z (the default view) sees the image's centre,
-    /// +Y its top row; u grows turning right, toward +X. Filtered bilinearly.
+    /// +Y its top row; u grows turning right, toward +X. Filtered bilinearly, wrapping
+    /// around in u only.
     pub fn lookup(&self, d: DVec3) -> DVec3 {
         let (c, s) = self.rotation;
         // Turning the map by +θ about Y turns the direction by −θ.
@@ -60,6 +61,9 @@ impl Environment {
         let z = -s * d.x + c * d.z;
         let u = 0.5 + x.atan2(-z) / std::f64::consts::TAU;
         let v = 0.5 + d.y.clamp(-1.0, 1.0).asin() / std::f64::consts::PI;
+        // Rows do not wrap over the poles: stay within the outer rows' centres.
+        let half_row = 0.5 / self.image.dimensions().1 as f64;
+        let v = v.clamp(half_row, 1.0 - half_row);
         self.intensity
             * self
                 .image

@@ -114,7 +114,8 @@ impl Motion {
                 previous_time = key.time;
                 continue;
             }
-            if time > previous_time {
+            // Equal keys hold still exactly (slerp would re-normalise the orientation).
+            if time > previous_time && key.transform != current {
                 let f = (time - previous_time) / (key.time - previous_time);
                 let next = &key.transform;
                 current = TransformDesc {
