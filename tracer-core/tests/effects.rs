@@ -137,11 +137,11 @@ fn glossiness_zero_is_the_mirror_and_roughness_spreads_the_reflection() {
     let s = settings(64, 48, 8);
     let assets = MemoryAssets::default();
     let mirror = render(&build(&mirror_scene(""), &assets), &s);
-    let zero = render(
-        &build(&mirror_scene("<glossiness v=\"0\"/>"), &assets),
-        &s,
+    let zero = render(&build(&mirror_scene("<glossiness v=\"0\"/>"), &assets), &s);
+    assert_eq!(
+        zero.pixels, mirror.pixels,
+        "glossiness 0 must be the mirror"
     );
-    assert_eq!(zero.pixels, mirror.pixels, "glossiness 0 must be the mirror");
     let slight = render(
         &build(&mirror_scene("<glossiness v=\"0.02\"/>"), &assets),
         &s,
@@ -216,14 +216,21 @@ fn motion_that_does_not_move_renders_the_static_image() {
     );
     let assets = MemoryAssets::default();
     let (a, b) = (build(&still, &assets), build(&keyed, &assets));
-    assert_eq!(b.world().movers.len(), 1, "the keyed ball takes the moving path");
+    assert_eq!(
+        b.world().movers.len(),
+        1,
+        "the keyed ball takes the moving path"
+    );
     let s = settings(64, 48, 4);
     assert_eq!(render(&a, &s).pixels, render(&b, &s).pixels);
 
     // Moving it does blur: along the motion, edge pixels take in-between values.
     let ball = |extra: &str, shutter: &str| {
         let body = format!("{FLAT}\n    <sphere material=\"flat\"><position x=\"0.3\" y=\"0\" z=\"0\"/><radius v=\"1\"/>{extra}</sphere>");
-        render(&build(&scene(shutter, &body), &assets), &settings(64, 48, 16))
+        render(
+            &build(&scene(shutter, &body), &assets),
+            &settings(64, 48, 16),
+        )
     };
     let open = "        <shutter open=\"0\" close=\"1\"/>";
     let sharp = ball("", open);
@@ -305,13 +312,7 @@ fn a_frame_equals_the_static_scene_at_its_time() {
         let still = Scene::build(&still, "fx.scene", &assets).unwrap();
         assert!(still.world().movers.is_empty());
         let s = settings(48, 36, 2);
-        let animated = render(
-            &scene,
-            &RenderSettings {
-                frame,
-                ..s.clone()
-            },
-        );
+        let animated = render(&scene, &RenderSettings { frame, ..s.clone() });
         assert_eq!(
             animated.pixels,
             render(&still, &s).pixels,
@@ -319,12 +320,30 @@ fn a_frame_equals_the_static_scene_at_its_time() {
         );
     }
     // Frames differ from one another, and a frame past the end is refused.
-    let f1 = render(&scene, &RenderSettings { frame: 1, ..settings(48, 36, 2) });
-    let f2 = render(&scene, &RenderSettings { frame: 2, ..settings(48, 36, 2) });
+    let f1 = render(
+        &scene,
+        &RenderSettings {
+            frame: 1,
+            ..settings(48, 36, 2)
+        },
+    );
+    let f2 = render(
+        &scene,
+        &RenderSettings {
+            frame: 2,
+            ..settings(48, 36, 2)
+        },
+    );
     assert_ne!(f1.pixels, f2.pixels);
-    let err = Renderer::new(&scene, &RenderSettings { frame: 5, ..settings(8, 8, 1) })
-        .err()
-        .unwrap();
+    let err = Renderer::new(
+        &scene,
+        &RenderSettings {
+            frame: 5,
+            ..settings(8, 8, 1)
+        },
+    )
+    .err()
+    .unwrap();
     assert!(err.contains("out of range"), "{err}");
 }
 
@@ -407,7 +426,8 @@ fn the_environment_map_is_what_escaping_rays_see() {
     assert_eq!(look(right, env), [0.0, 0.0, 0.5]);
     assert_eq!(look(up, env), [0.0, 0.5, 0.0]);
     // A half turn of the map swaps the halves; without a map the background colour is seen.
-    let turned = "    <environment_map file=\"sky.png\" intensity=\"0.5\" rotation=\"3.14159265\"/>";
+    let turned =
+        "    <environment_map file=\"sky.png\" intensity=\"0.5\" rotation=\"3.14159265\"/>";
     assert_eq!(look(left, turned), [0.0, 0.0, 0.5]);
     assert_eq!(look(left, ""), [0.8, 0.8, 0.8]);
     // A mirror ball reflects it: the ball's centre sends the eye ray straight back (+Z, the
