@@ -202,10 +202,12 @@ impl<'a> Renderer<'a> {
             } else {
                 self.time_open
             };
+            let moved;
             let camera = if self.camera_moves {
-                Self::camera_at(self.scene, s, time)
+                moved = Self::camera_at(self.scene, s, time);
+                &moved
             } else {
-                self.camera
+                &self.camera
             };
             let (px, py) = (x as f64 + jx, y as f64 + jy);
             let ray = if camera.aperture > 0.0 {

@@ -127,10 +127,16 @@ pub fn spawn_ray(
 /// A mirror direction spread over a lobe: `mirror` plus a uniform point of a ball of radius
 /// `glossiness`, folded back above the surface whose unit normal `n` faces the reflected side.
 /// Glossiness 0 returns `mirror` unchanged and draws nothing.
+#[inline(always)]
 pub fn glossy(mirror: DVec3, n: DVec3, glossiness: f64, rng: &mut Rng) -> DVec3 {
     if glossiness == 0.0 {
         return mirror;
     }
+    spread(mirror, n, glossiness, rng)
+}
+
+#[cold]
+fn spread(mirror: DVec3, n: DVec3, glossiness: f64, rng: &mut Rng) -> DVec3 {
     let ball = uniform_sphere(rng.next_f64(), rng.next_f64()) * rng.next_f64().cbrt();
     let dir = (mirror + glossiness * ball).normalize_or(mirror);
     let below = dir.dot(n);

@@ -567,6 +567,7 @@ struct Lookup<'a> {
 }
 
 impl Lookup<'_> {
+    #[inline(always)]
     fn texture(&self, material: &Material, uv: DVec2) -> DVec3 {
         match material.texture {
             Some(t) => self.textures[t as usize].sample(uv, self.filter),
@@ -574,6 +575,7 @@ impl Lookup<'_> {
         }
     }
 
+    #[inline(always)]
     fn sphere(&self, position: DVec3, xf: &Transform, radius: f64, material: u32) -> Surface {
         let local = xf.to_local.transform_point3(position) / radius;
         let unit = local.normalize_or_zero();
@@ -593,6 +595,7 @@ impl Lookup<'_> {
         }
     }
 
+    #[inline(always)]
     fn triangle(&self, position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Surface {
         let [b0, b1, b2] = bary;
         let [p0, p1, p2] = t.positions;
@@ -602,6 +605,7 @@ impl Lookup<'_> {
         let ms = t.materials.map(|m| &self.materials[m as usize]);
         let blend = |f: &dyn Fn(&Material) -> DVec3| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
         let scalar = |f: &dyn Fn(&Material) -> f64| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
+        let ior = scalar(&|m| m.ior);
         Surface {
             position,
             normal: interpolated.try_normalize().unwrap_or(geometric),
@@ -609,13 +613,23 @@ impl Lookup<'_> {
             ambient: blend(&|m| m.ambient),
             diffuse: blend(&|m| m.diffuse),
             specular: blend(&|m| m.specular),
-            ior: scalar(&|m| m.ior),
+            ior,
             texture: blend(&|m| self.texture(m, uv)),
-            glossiness: scalar(&|m| m.glossiness),
-            absorption: blend(&|m| m.absorption),
+            // The effects' blends only where a vertex material uses them.
+            glossiness: if ms.iter().any(|m| m.glossiness != 0.0) {
+                scalar(&|m| m.glossiness)
+            } else {
+                0.0
+            },
+            absorption: if ior != 0.0 {
+                blend(&|m| m.absorption)
+            } else {
+                DVec3::ZERO
+            },
         }
     }
 
+    #[inline(always)]
     fn model(
         &self,
         position: DVec3,
