@@ -22,8 +22,8 @@ def mix(a, b, t):
 def sky(x, y):
     """Latitude-longitude: column x is the azimuth (centre = -Z), row y the elevation (top = +Y).
 
-    Above the horizon a blue gradient with a warm low sun and soft clouds; below it, a checker
-    ground plane seen in perspective, fading into haze toward the horizon.
+    Above the horizon a blue gradient with a warm low sun and soft clouds; below it, a warm
+    ground fading into haze toward the horizon.
     """
     azimuth = ((x + 0.5) / SKY_W - 0.5) * 2 * math.pi
     elevation = (0.5 - (y + 0.5) / SKY_H) * math.pi
@@ -44,14 +44,12 @@ def sky(x, y):
         glow = max(0.0, cos_angle) ** 64 * 0.6 + (1.0 if cos_angle > 0.9985 else 0.0)
         colour = mix(colour, (1.0, 0.9, 0.7), min(1.0, glow))
     else:
-        # The ground plane one unit below the viewer, in 2-unit checks.
-        s = 1.0 / -d[1]
-        gx, gz = d[0] * s, d[2] * s
-        check = (math.floor(gx / 2) + math.floor(gz / 2)) % 2
-        ground = (0.30, 0.27, 0.22) if check else (0.55, 0.52, 0.46)
-        grain = 0.85 + 0.3 * fbm(gx * 2, gz * 2, 5, 64)
-        ground = tuple(c * grain for c in ground)
-        colour = mix(ground, haze, math.exp(-(-d[1]) * 12))
+        # Below the horizon: a soft warm ground fading into the haze (smooth, so that it
+        # stays clean however much a view magnifies it).
+        depth = (-d[1]) ** 0.6
+        grain = 0.92 + 0.16 * fbm(x / 32.0, y / 16.0, 5, 16)
+        ground = tuple(c * grain for c in mix((0.62, 0.58, 0.50), (0.34, 0.30, 0.25), depth))
+        colour = mix(ground, haze, math.exp(-(-d[1]) * 14))
     return bytes(min(255, int(c * 255)) for c in colour)
 
 

@@ -8,6 +8,7 @@ use crate::geometry::Ray;
 use crate::sampler::Rng;
 use crate::scene::{Light, Scene};
 use crate::settings::TextureFilter;
+use crate::world::Surface;
 
 /// Radiance rays one pixel sample may trace at most. Dielectrics branch in two at every level,
 /// so a deep limit could otherwise ask for 2^depth rays; the course's depth 5 needs at most 31.
@@ -239,15 +240,7 @@ impl<'a> Tracer<'a> {
             };
             let mut direct = scene.description.ambient * s.ambient;
             for light in &scene.lights {
-                direct += self.direct_light(
-                    light,
-                    s.position,
-                    n,
-                    s.geometric_normal,
-                    error_scale,
-                    ray.time,
-                    rng,
-                ) * s.diffuse;
+                direct += self.direct_light(light, &s, n, error_scale, ray.time, rng) * s.diffuse;
             }
             let mut color = s.texture * direct;
             let tint = s.texture * s.specular;
@@ -306,18 +299,19 @@ impl<'a> Tracer<'a> {
         color
     }
 
-    /// One light's shadowed, attenuated diffuse term b·c·att·max(N·L, 0) at a point; a light
-    /// with a radius is sampled at one uniform point of its sphere's surface.
+    /// One light's shadowed, attenuated diffuse term b·c·att·max(N·L, 0) at surface `s` with
+    /// shading normal `n`; a light with a radius is sampled at one uniform point of its
+    /// sphere's surface. The shadow ray is traced at `time`.
     fn direct_light(
         &mut self,
         light: &Light,
-        p: DVec3,
+        s: &Surface,
         n: DVec3,
-        geometric_normal: DVec3,
         error_scale: f64,
         time: f64,
         rng: &mut Rng,
     ) -> DVec3 {
+        let p = s.position;
         let target = if light.radius > 0.0 {
             light.position + light.radius * uniform_sphere(rng.next_f64(), rng.next_f64())
         } else {
@@ -333,7 +327,7 @@ impl<'a> Tracer<'a> {
         if cos.is_nan() || cos <= 0.0 {
             return DVec3::ZERO;
         }
-        let shadow = spawn_ray(p, geometric_normal, l, error_scale, time);
+        let shadow = spawn_ray(p, s.geometric_normal, l, error_scale, time);
         let shadow_length = (target - shadow.origin).dot(l);
         self.shadow_rays += 1;
         if self.scene.world.occluded(&shadow, shadow_length) {

@@ -705,6 +705,53 @@ pub fn sphere_uv(p: DVec3) -> DVec2 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::DQuat;
+
+    #[test]
+    fn a_movers_bounds_cover_its_whole_path() {
+        let base = TransformDesc {
+            position: DVec3::new(1.0, 0.0, 0.0),
+            orientation: DQuat::IDENTITY,
+            scale: DVec3::new(2.0, 0.5, 1.0),
+        };
+        let motion = Motion {
+            keys: vec![crate::scene::Keyframe {
+                time: 1.5,
+                transform: TransformDesc {
+                    position: DVec3::new(-2.0, 3.0, 1.0),
+                    orientation: DQuat::from_axis_angle(DVec3::Z, 2.5),
+                    ..base
+                },
+            }],
+            velocity: DVec3::new(0.0, 0.0, -0.3),
+            spin: Some((DVec3::Y, 4.0)),
+        };
+        let mover = Mover {
+            shape: MoverShape::Sphere {
+                radius: 0.7,
+                material: 0,
+            },
+            base,
+            motion,
+        };
+        let span = (0.0, 3.0);
+        let bounds = mover.bounds(&[], span);
+        // Points of the sphere's surface at many times, between the sampled ones too.
+        for i in 0..=997 {
+            let t = span.1 * i as f64 / 997.0;
+            let xf = mover.transform_at(t);
+            for j in 0..64 {
+                let d = crate::shade::uniform_sphere(j as f64 / 64.0, (j * 37 % 64) as f64 / 64.0);
+                let p = xf.to_world.transform_point3(0.7 * d);
+                assert!(
+                    p.cmpge(bounds.min).all() && p.cmple(bounds.max).all(),
+                    "{p} at t={t} outside {bounds:?}"
+                );
+            }
+        }
+        // And the box is not absurdly loose: within a unit of the path's extent.
+        assert!(bounds.extent().max_element() < 10.0, "{bounds:?}");
+    }
 
     #[test]
     fn sphere_uv_follows_the_preview_mesh() {

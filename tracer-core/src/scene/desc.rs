@@ -948,6 +948,45 @@ mod tests {
     use super::*;
 
     #[test]
+    fn motion_interpolates_between_keys_and_holds_after_the_last() {
+        let base = TransformDesc {
+            position: DVec3::ZERO,
+            orientation: DQuat::IDENTITY,
+            scale: DVec3::ONE,
+        };
+        let key = |time: f64, x: f64, angle: f64| Keyframe {
+            time,
+            transform: TransformDesc {
+                position: DVec3::new(x, 0.0, 0.0),
+                orientation: DQuat::from_axis_angle(DVec3::Y, angle),
+                scale: DVec3::ONE,
+            },
+        };
+        let motion = Motion {
+            keys: vec![key(2.0, 4.0, 1.0), key(3.0, 6.0, 1.0)],
+            ..Motion::default()
+        };
+        assert!(!motion.is_static() && Motion::default().is_static());
+        assert_eq!(motion.at(&base, 0.0), base);
+        let half = motion.at(&base, 1.0);
+        assert!((half.position.x - 2.0).abs() < 1e-12);
+        assert!((half.orientation.angle_between(DQuat::IDENTITY) - 0.5).abs() < 1e-12);
+        assert!((motion.at(&base, 2.5).position.x - 5.0).abs() < 1e-12);
+        assert_eq!(motion.at(&base, 7.0).position.x, 6.0);
+        // Velocity and spin add on top, growing with time.
+        let moving = Motion {
+            velocity: DVec3::new(0.0, 1.0, 0.0),
+            spin: Some((DVec3::Z, 0.25)),
+            ..motion
+        };
+        let late = moving.at(&base, 4.0);
+        assert_eq!(late.position, DVec3::new(6.0, 4.0, 0.0));
+        let expected =
+            DQuat::from_axis_angle(DVec3::Z, 1.0) * DQuat::from_axis_angle(DVec3::Y, 1.0);
+        assert!(late.orientation.angle_between(expected) < 1e-9);
+    }
+
+    #[test]
     fn c_double_prefixes() {
         assert_eq!(parse_c_double(".785"), Some(0.785));
         assert_eq!(parse_c_double("  1e3"), Some(1000.0));

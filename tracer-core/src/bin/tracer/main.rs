@@ -308,7 +308,7 @@ fn render_frame(
     let image = pool.install(|| renderer.render_image(&|done, _| bar.set_position(done)));
     bar.finish_and_clear();
     image
-        .write_png(&output)
+        .write_png(output)
         .map_err(|e| format!("cannot write {}: {e}", output.display()))?;
     let seconds = started.elapsed().as_secs_f64();
     let rays = renderer.rays_traced();
