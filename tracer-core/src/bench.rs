@@ -78,7 +78,7 @@ pub fn run(
         .map(|(i, s, scale)| {
             let mut rng = Rng::for_sample(settings.seed, i % w, i / w, 0);
             let dir = uniform_sphere(rng.next_f64(), rng.next_f64());
-            spawn_ray(s.position, s.geometric_normal, dir, *scale)
+            spawn_ray(s.position, s.geometric_normal, dir, *scale, 0.0)
         })
         .collect();
     let incoherent_time = best_of(repeats, || {
@@ -95,7 +95,8 @@ pub fn run(
                     let to_light = light.position - s.position;
                     let d = to_light.length();
                     (d > 0.0).then(|| {
-                        let ray = spawn_ray(s.position, s.geometric_normal, to_light / d, *scale);
+                        let ray =
+                            spawn_ray(s.position, s.geometric_normal, to_light / d, *scale, 0.0);
                         let len = (light.position - ray.origin).length();
                         (ray, len)
                     })

@@ -1,4 +1,5 @@
-//! The pinhole camera of conventions §3: vertical fov, aspect from the image, +X right.
+//! The pinhole camera of conventions §3: vertical fov, aspect from the image, +X right; with
+//! an aperture, a thin lens focused on a plane (depth of field).
 
 use glam::{DQuat, DVec3};
 
@@ -16,6 +17,10 @@ pub struct Camera {
     /// Eye-ray hits are accepted only for t in [near, far] (unit directions).
     pub near: f64,
     pub far: f64,
+    /// Lens radius; 0 is a pinhole.
+    pub aperture: f64,
+    /// Distance of the plane in focus, along the view direction.
+    pub focus_distance: f64,
 }
 
 impl Camera {
@@ -38,6 +43,17 @@ impl Camera {
             aspect,
             near,
             far,
+            aperture: 0.0,
+            focus_distance: 1.0,
+        }
+    }
+
+    /// The same camera with a thin lens of radius `aperture` focused at `focus_distance`.
+    pub fn with_lens(self, aperture: f64, focus_distance: f64) -> Camera {
+        Camera {
+            aperture,
+            focus_distance,
+            ..self
         }
     }
 
@@ -63,6 +79,17 @@ impl Camera {
         let dir = self.forward + self.tan_half_fov * (j * self.up + self.aspect * i * self.right);
         Ray::new(self.position, dir.normalize())
     }
+
+    /// The thin-lens eye ray through image point (x, y) from lens point `lens` (a point of
+    /// the unit disk): it leaves the aperture there and passes through the point of the focal
+    /// plane that the pinhole ray meets, so only that plane stays sharp.
+    #[inline]
+    pub fn lens_ray(&self, x: f64, y: f64, width: f64, height: f64, lens: (f64, f64)) -> Ray {
+        let pinhole = self.ray(x, y, width, height);
+        let focus = pinhole.at(self.focus_distance / pinhole.dir.dot(self.forward));
+        let origin = self.position + self.aperture * (lens.0 * self.right + lens.1 * self.up);
+        Ray::new(origin, (focus - origin).normalize())
+    }
 }
 
 #[cfg(test)]
@@ -80,6 +107,24 @@ mod tests {
         // Right edge: horizontal half-extent is aspect·tan(fov/2), toward +X.
         let right = cam.ray(100.0, 25.0, 100.0, 50.0);
         assert!((right.dir.x / -right.dir.z - 2.0 * 0.5f64.tan()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn lens_rays_meet_on_the_focal_plane() {
+        let cam = Camera::from_orientation(DVec3::ZERO, DQuat::IDENTITY, 1.0, 0.1, 10.0, 1.0)
+            .with_lens(0.5, 4.0);
+        let pinhole = cam.ray(30.0, 70.0, 100.0, 100.0);
+        let focus = pinhole.at(4.0 / -pinhole.dir.z);
+        assert!((focus.z + 4.0).abs() < 1e-12);
+        for lens in [(1.0, 0.0), (-0.3, 0.7), (0.0, -1.0)] {
+            let r = cam.lens_ray(30.0, 70.0, 100.0, 100.0, lens);
+            assert!(
+                (r.origin.length() - 0.5 * (lens.0 * lens.0 + lens.1 * lens.1).sqrt()).abs()
+                    < 1e-12
+            );
+            let t = (focus - r.origin).length();
+            assert!((r.at(t) - focus).length() < 1e-12);
+        }
     }
 
     #[test]

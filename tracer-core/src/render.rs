@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::film::Image;
-use crate::sampler::{strata, Rng};
+use crate::sampler::{concentric_disk, strata, Rng, Stream};
 use crate::scene::Scene;
 use crate::settings::{RenderSettings, TileRect};
 use crate::shade::{MediumStack, Tracer};
@@ -21,6 +21,13 @@ pub struct Renderer<'a> {
     scene: &'a Scene,
     settings: RenderSettings,
     camera: Camera,
+    /// Time of the shutter's opening for this frame, and how long it stays open.
+    time_open: f64,
+    shutter_length: f64,
+    /// Whether samples draw a time (something moves while the shutter is open).
+    sample_time: bool,
+    /// Whether the camera itself moves while the shutter is open.
+    camera_moves: bool,
     strata: (u32, u32),
     radiance_rays: AtomicU64,
     shadow_rays: AtomicU64,
@@ -35,16 +42,18 @@ impl<'a> Renderer<'a> {
                 settings.max_depth
             ));
         }
+        if settings.frame >= scene.frame_count() {
+            return Err(format!(
+                "frame {} is out of range: the scene has {} frame(s), numbered from 0",
+                settings.frame,
+                scene.frame_count()
+            ));
+        }
         let c = &scene.description.camera;
-        let aspect = settings.width as f64 / settings.height as f64;
-        let mut camera = Camera::from_orientation(
-            c.position,
-            c.orientation,
-            c.fov,
-            c.near_clip.max(0.0),
-            c.far_clip,
-            aspect,
-        );
+        let time_open = settings.frame as f64 + c.shutter[0];
+        let shutter_length = c.shutter[1] - c.shutter[0];
+        let moving = shutter_length > 0.0 && scene.description.has_motion();
+        let mut camera = Self::camera_at(scene, settings, time_open);
         if let Some(o) = &settings.camera {
             camera = camera.with_override(o);
         }
@@ -52,10 +61,29 @@ impl<'a> Renderer<'a> {
             scene,
             settings: settings.clone(),
             camera,
+            time_open,
+            shutter_length,
+            sample_time: moving,
+            camera_moves: moving && settings.camera.is_none() && !c.motion.is_static(),
             strata: strata(settings.spp),
             radiance_rays: AtomicU64::new(0),
             shadow_rays: AtomicU64::new(0),
         })
+    }
+
+    /// The scene's camera at `time`, before any override.
+    fn camera_at(scene: &Scene, settings: &RenderSettings, time: f64) -> Camera {
+        let c = &scene.description.camera;
+        let (position, orientation) = c.at(time);
+        Camera::from_orientation(
+            position,
+            orientation,
+            c.fov,
+            c.near_clip.max(0.0),
+            c.far_clip,
+            settings.width as f64 / settings.height as f64,
+        )
+        .with_lens(c.aperture, c.focus_distance)
     }
 
     pub fn settings(&self) -> &RenderSettings {
@@ -167,10 +195,35 @@ impl<'a> Renderer<'a> {
                     (cy as f64 + rng.next_f64()) / rows as f64,
                 )
             };
-            let ray = self.camera.ray(x as f64 + jx, y as f64 + jy, w, h);
+            // Effects draw from their own streams, so the numbers above stay the course's.
+            let time = if self.sample_time {
+                let mut r = Rng::for_stream(s.seed, x, y, sample, Stream::Time);
+                self.time_open + self.shutter_length * r.next_f64()
+            } else {
+                self.time_open
+            };
+            let moved;
+            let camera = if self.camera_moves {
+                moved = Self::camera_at(self.scene, s, time);
+                &moved
+            } else {
+                &self.camera
+            };
+            let (px, py) = (x as f64 + jx, y as f64 + jy);
+            let ray = if camera.aperture > 0.0 {
+                let mut r = Rng::for_stream(s.seed, x, y, sample, Stream::Lens);
+                let lens = concentric_disk(r.next_f64(), r.next_f64());
+                camera.lens_ray(px, py, w, h, lens)
+            } else {
+                camera.ray(px, py, w, h)
+            }
+            .at_time(time);
+            if self.scene.has_gloss {
+                tracer.gloss_rng = Rng::for_stream(s.seed, x, y, sample, Stream::Gloss);
+            }
             tracer.radiance_rays = 0;
             tracer.shadow_rays = 0;
-            let c = tracer.radiance(&ray, self.camera.near, self.camera.far, 0, outer, &mut rng);
+            let c = tracer.radiance(&ray, camera.near, camera.far, 0, outer, &mut rng);
             *radiance_rays += tracer.radiance_rays as u64;
             *shadow_rays += tracer.shadow_rays as u64;
             sum += sanitize(c);

@@ -24,6 +24,16 @@ impl Rng {
         }
     }
 
+    /// An independent stream of the same pixel sample for one effect. Effects draw only from
+    /// their own stream, so turning one on never shifts the numbers the course's model uses
+    /// (jitter, light samples): a scene without it renders the same bits as before.
+    pub fn for_stream(seed: u64, x: u32, y: u32, sample: u32, stream: Stream) -> Rng {
+        let base = Rng::for_sample(seed, x, y, sample).state;
+        Rng {
+            state: mix(base ^ mix(0xd1b54a32d192ed03u64.wrapping_mul(stream as u64))),
+        }
+    }
+
     #[inline]
     pub fn next_u64(&mut self) -> u64 {
         self.state = self.state.wrapping_add(0x9e3779b97f4a7c15);
@@ -35,6 +45,35 @@ impl Rng {
     pub fn next_f64(&mut self) -> f64 {
         (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
     }
+}
+
+/// The random dimensions the effects add, each its own stream (see [`Rng::for_stream`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stream {
+    /// The thin lens's point on the aperture.
+    Lens = 1,
+    /// The time within the shutter interval.
+    Time = 2,
+    /// Glossy reflection lobes, drawn in tracing order.
+    Gloss = 3,
+}
+
+/// A uniform point on the unit disk (Shirley–Chiu concentric map: strata stay compact).
+pub fn concentric_disk(u1: f64, u2: f64) -> (f64, f64) {
+    let a = 2.0 * u1 - 1.0;
+    let b = 2.0 * u2 - 1.0;
+    if a == 0.0 && b == 0.0 {
+        return (0.0, 0.0);
+    }
+    let (r, phi) = if a.abs() > b.abs() {
+        (a, std::f64::consts::FRAC_PI_4 * (b / a))
+    } else {
+        (
+            b,
+            std::f64::consts::FRAC_PI_2 - std::f64::consts::FRAC_PI_4 * (a / b),
+        )
+    };
+    (r * phi.cos(), r * phi.sin())
 }
 
 /// The stratum grid for `spp` samples: `cols × rows == spp` with cols the largest divisor of
@@ -87,6 +126,31 @@ mod tests {
             buckets.iter().all(|&b| (9_500..10_500).contains(&b)),
             "{buckets:?}"
         );
+    }
+
+    #[test]
+    fn streams_differ_from_the_main_stream_and_each_other() {
+        let main = Rng::for_sample(5, 6, 7, 8).next_u64();
+        let lens = Rng::for_stream(5, 6, 7, 8, Stream::Lens).next_u64();
+        let time = Rng::for_stream(5, 6, 7, 8, Stream::Time).next_u64();
+        let gloss = Rng::for_stream(5, 6, 7, 8, Stream::Gloss).next_u64();
+        let all = [main, lens, time, gloss];
+        for i in 0..4 {
+            for j in i + 1..4 {
+                assert_ne!(all[i], all[j]);
+            }
+        }
+        assert_eq!(lens, Rng::for_stream(5, 6, 7, 8, Stream::Lens).next_u64());
+    }
+
+    #[test]
+    fn concentric_disk_stays_inside_the_unit_disk() {
+        let mut rng = Rng::for_sample(1, 1, 1, 1);
+        for _ in 0..10_000 {
+            let (x, y) = concentric_disk(rng.next_f64(), rng.next_f64());
+            assert!(x * x + y * y <= 1.0 + 1e-12);
+        }
+        assert_eq!(concentric_disk(0.5, 0.5), (0.0, 0.0));
     }
 
     #[test]

@@ -40,6 +40,8 @@ pub struct RenderSettings {
     pub seed: u64,
     pub camera: Option<CameraOverride>,
     pub texture_filter: TextureFilter,
+    /// Frame of an animated scene (time = frame); 0 for a still.
+    pub frame: u32,
 }
 
 impl Default for RenderSettings {
@@ -52,6 +54,7 @@ impl Default for RenderSettings {
             seed: 0,
             camera: None,
             texture_filter: TextureFilter::Nearest,
+            frame: 0,
         }
     }
 }

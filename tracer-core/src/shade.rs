@@ -8,6 +8,7 @@ use crate::geometry::Ray;
 use crate::sampler::Rng;
 use crate::scene::{Light, Scene};
 use crate::settings::TextureFilter;
+use crate::world::Surface;
 
 /// Radiance rays one pixel sample may trace at most. Dielectrics branch in two at every level,
 /// so a deep limit could otherwise ask for 2^depth rays; the course's depth 5 needs at most 31.
@@ -16,11 +17,13 @@ pub const RAY_BUDGET_PER_SAMPLE: u32 = 4096;
 /// Deepest nesting of media tracked; entries past it are not pushed (wrong colour, no crash).
 const MAX_MEDIA: usize = 16;
 
-/// Refractive indices of the media the ray is inside, outermost first. Copied per branch, so
-/// reflected and refracted rays each carry their own.
+/// Refractive indices of the media the ray is inside, outermost first, with each medium's
+/// Beer's-law absorption. Copied per branch, so reflected and refracted rays each carry their
+/// own.
 #[derive(Clone, Copy, Debug)]
 pub struct MediumStack {
     indices: [f64; MAX_MEDIA],
+    absorption: [DVec3; MAX_MEDIA],
     len: usize,
 }
 
@@ -28,17 +31,32 @@ impl MediumStack {
     pub fn new(outer: f64) -> Self {
         let mut indices = [0.0; MAX_MEDIA];
         indices[0] = outer;
-        Self { indices, len: 1 }
+        Self {
+            indices,
+            absorption: [DVec3::ZERO; MAX_MEDIA],
+            len: 1,
+        }
     }
 
     pub fn current(&self) -> f64 {
         self.indices[self.len - 1]
     }
 
+    /// Absorption coefficients of the innermost medium (zero outside absorbing dielectrics).
+    pub fn absorption(&self) -> DVec3 {
+        self.absorption[self.len - 1]
+    }
+
     /// Entering a medium of index `ior`.
-    pub fn entered(mut self, ior: f64) -> Self {
+    pub fn entered(self, ior: f64) -> Self {
+        self.entered_absorbing(ior, DVec3::ZERO)
+    }
+
+    /// Entering a medium of index `ior` that absorbs `absorption` per unit distance.
+    pub fn entered_absorbing(mut self, ior: f64, absorption: DVec3) -> Self {
         if self.len < MAX_MEDIA {
             self.indices[self.len] = ior;
+            self.absorption[self.len] = absorption;
             self.len += 1;
         }
         self
@@ -50,6 +68,7 @@ impl MediumStack {
     pub fn left(mut self, ior: f64) -> Self {
         if let Some(i) = (1..self.len).rev().find(|&i| self.indices[i] == ior) {
             self.indices.copy_within(i + 1..self.len, i);
+            self.absorption.copy_within(i + 1..self.len, i);
             self.len -= 1;
         }
         self
@@ -89,14 +108,44 @@ pub fn reflect(dir: DVec3, n: DVec3) -> DVec3 {
 /// The offset scales with the magnitudes that bound the hit point's rounding error (its
 /// coordinates and the distance travelled to it), so it works at any scene scale without a
 /// fixed epsilon; at 1e-9 relative it stays far below the 0.001 gaps in stacks.scene.
-pub fn spawn_ray(position: DVec3, geometric_normal: DVec3, dir: DVec3, error_scale: f64) -> Ray {
+/// The ray keeps its parent's `time`.
+pub fn spawn_ray(
+    position: DVec3,
+    geometric_normal: DVec3,
+    dir: DVec3,
+    error_scale: f64,
+    time: f64,
+) -> Ray {
     let offset = 1e-9 * error_scale;
     let side = if dir.dot(geometric_normal) >= 0.0 {
         geometric_normal
     } else {
         -geometric_normal
     };
-    Ray::new(position + offset * side, dir)
+    Ray::new(position + offset * side, dir).at_time(time)
+}
+
+/// A mirror direction spread over a lobe: `mirror` plus a uniform point of a ball of radius
+/// `glossiness`, folded back above the surface whose unit normal `n` faces the reflected side.
+/// Glossiness 0 returns `mirror` unchanged and draws nothing.
+#[inline(always)]
+pub fn glossy(mirror: DVec3, n: DVec3, glossiness: f64, rng: &mut Rng) -> DVec3 {
+    if glossiness == 0.0 {
+        return mirror;
+    }
+    spread(mirror, n, glossiness, rng)
+}
+
+#[cold]
+fn spread(mirror: DVec3, n: DVec3, glossiness: f64, rng: &mut Rng) -> DVec3 {
+    let ball = uniform_sphere(rng.next_f64(), rng.next_f64()) * rng.next_f64().cbrt();
+    let dir = (mirror + glossiness * ball).normalize_or(mirror);
+    let below = dir.dot(n);
+    if below < 0.0 {
+        (dir - 2.0 * below * n).normalize_or(mirror)
+    } else {
+        dir
+    }
 }
 
 /// Per-sample tracing state.
@@ -108,6 +157,8 @@ pub struct Tracer<'a> {
     pub radiance_rays: u32,
     /// Shadow rays traced for this sample.
     pub shadow_rays: u32,
+    /// The sample's glossy-lobe stream (see [`crate::sampler::Stream::Gloss`]).
+    pub gloss_rng: Rng,
 }
 
 impl<'a> Tracer<'a> {
@@ -118,6 +169,7 @@ impl<'a> Tracer<'a> {
             max_depth,
             radiance_rays: 0,
             shadow_rays: 0,
+            gloss_rng: Rng::for_sample(0, 0, 0, 0),
         }
     }
 
@@ -132,17 +184,50 @@ impl<'a> Tracer<'a> {
         media: MediumStack,
         rng: &mut Rng,
     ) -> DVec3 {
+        let absorption = media.absorption();
+        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng);
+        if absorption == DVec3::ZERO {
+            return color;
+        }
+        // Beer's law over the distance travelled inside the medium (an escaping ray
+        // travels forever: exp(-σ·∞) = 0 wherever σ > 0).
+        let transmittance = (-absorption * distance).exp();
+        color * DVec3::select(absorption.cmpeq(DVec3::ZERO), DVec3::ONE, transmittance)
+    }
+
+    /// The colour along `ray`, and the distance to what it hit (infinite on a miss).
+    fn trace(
+        &mut self,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+        level: u32,
+        media: MediumStack,
+        rng: &mut Rng,
+    ) -> (DVec3, f64) {
         if level >= self.max_depth || self.radiance_rays >= RAY_BUDGET_PER_SAMPLE {
-            return DVec3::ZERO;
+            return (DVec3::ZERO, 0.0);
         }
         self.radiance_rays += 1;
         let scene = self.scene;
         let Some(hit) = scene.world.intersect(ray, t_min, t_max) else {
-            return scene.description.background;
+            return (scene.background(ray.dir), f64::INFINITY);
         };
+        (self.shade(ray, &hit, level, media, rng), hit.t)
+    }
+
+    fn shade(
+        &mut self,
+        ray: &Ray,
+        hit: &crate::world::Hit,
+        level: u32,
+        media: MediumStack,
+        rng: &mut Rng,
+    ) -> DVec3 {
+        let scene = self.scene;
         let s = scene
             .world
-            .surface(ray, &hit, &scene.materials, &scene.textures, self.filter);
+            .surface(ray, hit, &scene.materials, &scene.textures, self.filter);
         let error_scale = s.position.abs().max_element() + hit.t;
         let d = ray.dir;
 
@@ -155,15 +240,14 @@ impl<'a> Tracer<'a> {
             };
             let mut direct = scene.description.ambient * s.ambient;
             for light in &scene.lights {
-                direct +=
-                    self.direct_light(light, s.position, n, s.geometric_normal, error_scale, rng)
-                        * s.diffuse;
+                direct += self.direct_light(light, &s, n, error_scale, ray.time, rng) * s.diffuse;
             }
             let mut color = s.texture * direct;
             let tint = s.texture * s.specular;
             if tint != DVec3::ZERO {
+                let dir = glossy(reflect(d, n), n, s.glossiness, &mut self.gloss_rng);
                 let reflected =
-                    spawn_ray(s.position, s.geometric_normal, reflect(d, n), error_scale);
+                    spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
                 color +=
                     tint * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng);
             }
@@ -174,7 +258,11 @@ impl<'a> Tracer<'a> {
         let entering = s.normal.dot(d) < 0.0;
         let facing = if entering { s.normal } else { -s.normal };
         let (n1, n2, inside) = if entering {
-            (media.current(), s.ior, media.entered(s.ior))
+            (
+                media.current(),
+                s.ior,
+                media.entered_absorbing(s.ior, s.absorption),
+            )
         } else {
             let after = media.left(s.ior);
             let n1 = if after.len < media.len {
@@ -189,19 +277,21 @@ impl<'a> Tracer<'a> {
         let tint = s.texture * s.specular;
         let mut color = DVec3::ZERO;
         if reflectance > 0.0 && tint != DVec3::ZERO {
-            let reflected = spawn_ray(
-                s.position,
-                s.geometric_normal,
+            let dir = glossy(
                 reflect(d, facing),
-                error_scale,
+                facing,
+                s.glossiness,
+                &mut self.gloss_rng,
             );
+            let reflected = spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
             color += reflectance
                 * tint
                 * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng);
         }
         if reflectance < 1.0 {
             if let Some(dir) = refract(d, facing, n1, n2) {
-                let refracted = spawn_ray(s.position, s.geometric_normal, dir, error_scale);
+                let refracted =
+                    spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
                 color += (1.0 - reflectance)
                     * self.radiance(&refracted, 0.0, f64::INFINITY, level + 1, inside, rng);
             }
@@ -209,17 +299,19 @@ impl<'a> Tracer<'a> {
         color
     }
 
-    /// One light's shadowed, attenuated diffuse term b·c·att·max(N·L, 0) at a point; a light
-    /// with a radius is sampled at one uniform point of its sphere's surface.
+    /// One light's shadowed, attenuated diffuse term b·c·att·max(N·L, 0) at surface `s` with
+    /// shading normal `n`; a light with a radius is sampled at one uniform point of its
+    /// sphere's surface. The shadow ray is traced at `time`.
     fn direct_light(
         &mut self,
         light: &Light,
-        p: DVec3,
+        s: &Surface,
         n: DVec3,
-        geometric_normal: DVec3,
         error_scale: f64,
+        time: f64,
         rng: &mut Rng,
     ) -> DVec3 {
+        let p = s.position;
         let target = if light.radius > 0.0 {
             light.position + light.radius * uniform_sphere(rng.next_f64(), rng.next_f64())
         } else {
@@ -235,7 +327,7 @@ impl<'a> Tracer<'a> {
         if cos.is_nan() || cos <= 0.0 {
             return DVec3::ZERO;
         }
-        let shadow = spawn_ray(p, geometric_normal, l, error_scale);
+        let shadow = spawn_ray(p, s.geometric_normal, l, error_scale, time);
         let shadow_length = (target - shadow.origin).dot(l);
         self.shadow_rays += 1;
         if self.scene.world.occluded(&shadow, shadow_length) {
@@ -305,6 +397,36 @@ mod tests {
             deep = deep.entered(1.5);
         }
         assert_eq!(deep.len, MAX_MEDIA);
+    }
+
+    #[test]
+    fn absorption_follows_the_medium_it_belongs_to() {
+        let sigma = DVec3::new(0.5, 0.0, 2.0);
+        let air = MediumStack::new(1.0);
+        let tinted = air.entered_absorbing(1.5, sigma);
+        assert_eq!(tinted.absorption(), sigma);
+        assert_eq!(tinted.entered(1.33).absorption(), DVec3::ZERO);
+        assert_eq!(tinted.entered(1.33).left(1.33).absorption(), sigma);
+        // Leaving the tinted glass from inside water that overlaps it keeps water's (none).
+        assert_eq!(tinted.entered(1.33).left(1.5).absorption(), DVec3::ZERO);
+        assert_eq!(tinted.left(1.5).absorption(), DVec3::ZERO);
+    }
+
+    #[test]
+    fn gloss_zero_is_the_mirror_and_gloss_stays_above_the_surface() {
+        let mut rng = Rng::for_sample(1, 2, 3, 4);
+        let n = DVec3::Y;
+        let mirror = DVec3::new(1.0, 0.05, 0.0).normalize();
+        let before = rng.clone().next_u64();
+        assert_eq!(glossy(mirror, n, 0.0, &mut rng), mirror);
+        assert_eq!(rng.next_u64(), before, "glossiness 0 draws nothing");
+        let mut spread = 0.0f64;
+        for _ in 0..2000 {
+            let d = glossy(mirror, n, 0.5, &mut rng);
+            assert!(d.dot(n) >= 0.0 && (d.length() - 1.0).abs() < 1e-12);
+            spread = spread.max(d.angle_between(mirror));
+        }
+        assert!(spread > 0.3, "a rough lobe spreads: {spread}");
     }
 
     #[test]

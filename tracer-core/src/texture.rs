@@ -43,6 +43,11 @@ impl Texture {
         }
     }
 
+    /// Width and height in texels.
+    pub fn dimensions(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
     fn texel(&self, x: u32, y: u32) -> DVec3 {
         let [r, g, b] = self.texels[y as usize * self.width as usize + x as usize];
         DVec3::new(r as f64, g as f64, b as f64) / 255.0

@@ -7,6 +7,7 @@ use crate::accel::Bvh;
 use crate::geometry::{
     intersect_triangle, intersect_unit_sphere_scaled, Aabb, Ray, Transform, TriangleRay,
 };
+use crate::scene::{Motion, TransformDesc};
 use crate::settings::TextureFilter;
 use crate::texture::Texture;
 
@@ -18,6 +19,10 @@ pub struct Material {
     /// 0 is opaque; anything else a dielectric.
     pub ior: f64,
     pub texture: Option<u32>,
+    /// Spread of reflections; 0 is a perfect mirror.
+    pub glossiness: f64,
+    /// Beer's-law coefficients inside a dielectric.
+    pub absorption: DVec3,
 }
 
 #[derive(Clone, Debug)]
@@ -110,11 +115,96 @@ pub struct Model {
     pub material: u32,
 }
 
+/// A sphere, scene triangle or model that moves. It is intersected by taking the ray into
+/// its local space at the ray's time, so the top-level BVH is built once, over bounds that
+/// cover the whole animation, and static objects pay nothing for it.
+#[derive(Clone, Debug)]
+pub struct Mover {
+    pub shape: MoverShape,
+    /// The transform at time 0, and how it changes.
+    pub base: TransformDesc,
+    pub motion: Motion,
+}
+
+#[derive(Clone, Debug)]
+pub enum MoverShape {
+    Sphere {
+        radius: f64,
+        material: u32,
+    },
+    /// A scene triangle in its own local space.
+    Triangle(WorldTriangle),
+    Model {
+        mesh: u32,
+        material: u32,
+    },
+}
+
+impl Mover {
+    pub fn transform_at(&self, time: f64) -> Transform {
+        let t = self.motion.at(&self.base, time);
+        Transform::new(t.position, t.orientation, t.scale)
+    }
+
+    fn local_bounds(&self, meshes: &[Mesh]) -> Aabb {
+        match &self.shape {
+            MoverShape::Sphere { radius, .. } => {
+                let r = DVec3::splat(*radius);
+                Aabb { min: -r, max: r }
+            }
+            MoverShape::Triangle(t) => Aabb::from_points(&t.positions),
+            MoverShape::Model { mesh, .. } => meshes[*mesh as usize].bvh.bounds(),
+        }
+    }
+
+    /// World bounds over times in `span`: the local box's corners at every key and at fine
+    /// steps between, padded by the largest step a corner takes, so the swept path between
+    /// samples stays inside.
+    pub fn bounds(&self, meshes: &[Mesh], span: (f64, f64)) -> Aabb {
+        let corners = self.local_bounds(meshes).corners();
+        let mut times: Vec<f64> = self
+            .motion
+            .key_times()
+            .filter(|t| *t > span.0 && *t < span.1)
+            .collect();
+        times.insert(0, span.0);
+        times.push(span.1);
+        let spin_rate = self.motion.spin.map_or(0.0, |(_, rate)| rate.abs());
+        let mut bounds = Aabb::EMPTY;
+        let mut pad = 0.0f64;
+        let mut previous: Option<[DVec3; 8]> = None;
+        for pair in times.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            // Steps of at most ~1° of spin keep the padding small.
+            let steps = (64.0f64)
+                .max((spin_rate * (b - a) / 0.02).ceil())
+                .min(16_384.0) as usize;
+            for i in 0..=steps {
+                let t = a + (b - a) * i as f64 / steps as f64;
+                let xf = self.transform_at(t);
+                let world = corners.map(|c| xf.to_world.transform_point3(c));
+                bounds = bounds.union(Aabb::from_points(&world));
+                if let Some(prev) = previous {
+                    for (p, q) in prev.iter().zip(&world) {
+                        pad = pad.max(p.distance(*q));
+                    }
+                }
+                previous = Some(world);
+            }
+        }
+        Aabb {
+            min: bounds.min - DVec3::splat(pad),
+            max: bounds.max + DVec3::splat(pad),
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug)]
 enum Object {
     Sphere(u32),
     Triangle(u32),
     Model(u32),
+    Mover(u32),
 }
 
 /// The closest intersection found along a ray.
@@ -141,6 +231,8 @@ pub struct Surface {
     pub ior: f64,
     /// Texture colour at the hit (white where there is no texture).
     pub texture: DVec3,
+    pub glossiness: f64,
+    pub absorption: DVec3,
 }
 
 #[derive(Clone, Debug, Default)]
@@ -149,6 +241,9 @@ pub struct World {
     pub triangles: Vec<WorldTriangle>,
     pub meshes: Vec<Mesh>,
     pub models: Vec<Model>,
+    pub movers: Vec<Mover>,
+    /// Times (in frames) the movers' bounds cover.
+    pub time_span: (f64, f64),
     objects: Vec<Object>,
     top: Bvh,
 }
@@ -159,6 +254,18 @@ impl World {
         triangles: Vec<WorldTriangle>,
         meshes: Vec<Mesh>,
         models: Vec<Model>,
+    ) -> World {
+        World::with_movers(spheres, triangles, meshes, models, Vec::new(), (0.0, 0.0))
+    }
+
+    /// A world with moving objects too, whose rays' times lie in `time_span`.
+    pub fn with_movers(
+        spheres: Vec<Sphere>,
+        triangles: Vec<WorldTriangle>,
+        meshes: Vec<Mesh>,
+        models: Vec<Model>,
+        movers: Vec<Mover>,
+        time_span: (f64, f64),
     ) -> World {
         let mut objects = Vec::new();
         let mut bounds = Vec::new();
@@ -176,6 +283,10 @@ impl World {
             let local = meshes[m.mesh as usize].bvh.bounds();
             bounds.push(m.transform.bounds_to_world(local));
         }
+        for (i, m) in movers.iter().enumerate() {
+            objects.push(Object::Mover(i as u32));
+            bounds.push(m.bounds(&meshes, time_span));
+        }
         let top = Bvh::build(&bounds);
         let objects = top.order.iter().map(|&o| objects[o as usize]).collect();
         World {
@@ -183,6 +294,8 @@ impl World {
             triangles,
             meshes,
             models,
+            movers,
+            time_span,
             objects,
             top,
         }
@@ -196,11 +309,13 @@ impl World {
     pub fn rebuilt(&self) -> World {
         use rayon::prelude::*;
         let meshes = self.meshes.par_iter().map(Mesh::rebuilt).collect();
-        World::new(
+        World::with_movers(
             self.spheres.clone(),
             self.triangles.clone(),
             meshes,
             self.models.clone(),
+            self.movers.clone(),
+            self.time_span,
         )
     }
 
@@ -286,11 +401,69 @@ impl World {
                             false
                         });
                     }
+                    Object::Mover(i) => {
+                        if let Some((t, prim, bary)) =
+                            self.intersect_mover(i, ray, t_min, *t_max, false)
+                        {
+                            *t_max = t;
+                            best = Some(Hit {
+                                t,
+                                object: slot as u32,
+                                prim,
+                                bary,
+                            });
+                        }
+                    }
                 }
             }
             false
         });
         best
+    }
+
+    /// A moving object's closest hit in (t_min, t_max) at the ray's time: (t, triangle slot,
+    /// barycentrics). `any` stops at the first hit found.
+    fn intersect_mover(
+        &self,
+        index: u32,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+        any: bool,
+    ) -> Option<(f64, u32, [f64; 3])> {
+        let mover = &self.movers[index as usize];
+        let local = mover.transform_at(ray.time).ray_to_local(ray);
+        match &mover.shape {
+            MoverShape::Sphere { radius, .. } => {
+                intersect_unit_sphere_scaled(local.origin, local.dir, *radius, t_min, t_max)
+                    .map(|t| (t, 0, [0.0; 3]))
+            }
+            MoverShape::Triangle(tri) => {
+                let [a, b, c] = tri.positions;
+                intersect_triangle(&TriangleRay::new(&local), a, b, c, t_min, t_max)
+                    .map(|h| (h.t, 0, h.bary))
+            }
+            MoverShape::Model { mesh, .. } => {
+                let mesh = &self.meshes[*mesh as usize];
+                let tri_ray = TriangleRay::new(&local);
+                let mut found = None;
+                let mut limit = t_max;
+                mesh.bvh.traverse(&local, &mut limit, |tris, t_max| {
+                    for tri in tris {
+                        let [a, b, c] = mesh.corners[tri];
+                        if let Some(h) = intersect_triangle(&tri_ray, a, b, c, t_min, *t_max) {
+                            *t_max = h.t;
+                            found = Some((h.t, tri as u32, h.bary));
+                            if any {
+                                return true;
+                            }
+                        }
+                    }
+                    false
+                });
+                found
+            }
+        }
     }
 
     /// Whether anything lies along the ray with t in (0, t_max).
@@ -324,6 +497,7 @@ impl World {
                             })
                         })
                     }
+                    Object::Mover(i) => self.intersect_mover(i, ray, 0.0, *t_max, true).is_some(),
                 };
                 if blocked {
                     return true;
@@ -343,75 +517,150 @@ impl World {
         filter: TextureFilter,
     ) -> Surface {
         let position = ray.at(hit.t);
-        let tex_color = |material: &Material, uv: DVec2| match material.texture {
-            Some(t) => textures[t as usize].sample(uv, filter),
-            None => DVec3::ONE,
+        let look = Lookup {
+            materials,
+            textures,
+            filter,
         };
-        let [b0, b1, b2] = hit.bary;
         match self.objects[hit.object as usize] {
             Object::Sphere(i) => {
                 let s = &self.spheres[i as usize];
-                let local = s.transform.to_local.transform_point3(position) / s.radius;
-                let unit = local.normalize_or_zero();
-                let normal = s.transform.normal_to_world(unit);
-                let m = &materials[s.material as usize];
-                Surface {
-                    position,
-                    normal,
-                    geometric_normal: normal,
-                    ambient: m.ambient,
-                    diffuse: m.diffuse,
-                    specular: m.specular,
-                    ior: m.ior,
-                    texture: tex_color(m, sphere_uv(unit)),
-                }
+                look.sphere(position, &s.transform, s.radius, s.material)
             }
-            Object::Triangle(i) => {
-                let t = &self.triangles[i as usize];
-                let [p0, p1, p2] = t.positions;
-                let geometric = (p1 - p0).cross(p2 - p0).normalize_or_zero();
-                let interpolated = b0 * t.normals[0] + b1 * t.normals[1] + b2 * t.normals[2];
-                let uv = b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2];
-                let ms = t.materials.map(|m| &materials[m as usize]);
-                let blend =
-                    |f: &dyn Fn(&Material) -> DVec3| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
-                Surface {
-                    position,
-                    normal: interpolated.try_normalize().unwrap_or(geometric),
-                    geometric_normal: geometric,
-                    ambient: blend(&|m| m.ambient),
-                    diffuse: blend(&|m| m.diffuse),
-                    specular: blend(&|m| m.specular),
-                    ior: b0 * ms[0].ior + b1 * ms[1].ior + b2 * ms[2].ior,
-                    texture: blend(&|m| tex_color(m, uv)),
-                }
-            }
+            Object::Triangle(i) => look.triangle(position, &self.triangles[i as usize], hit.bary),
             Object::Model(i) => {
                 let model = &self.models[i as usize];
                 let mesh = &self.meshes[model.mesh as usize];
-                let [i0, i1, i2] = mesh.indices[hit.prim as usize].map(|i| i as usize);
-                let [p0, p1, p2] = mesh.corners[hit.prim as usize];
-                let geometric = model.transform.normal_to_world((p1 - p0).cross(p2 - p0));
-                let local_n = b0 * mesh.normals[i0] + b1 * mesh.normals[i1] + b2 * mesh.normals[i2];
-                let normal = model.transform.normal_to_world(local_n);
-                let uv =
-                    b0 * mesh.tex_coords[i0] + b1 * mesh.tex_coords[i1] + b2 * mesh.tex_coords[i2];
-                let m = &materials[model.material as usize];
-                Surface {
-                    position,
-                    normal: if normal == DVec3::ZERO {
-                        geometric
-                    } else {
-                        normal
-                    },
-                    geometric_normal: geometric,
-                    ambient: m.ambient,
-                    diffuse: m.diffuse,
-                    specular: m.specular,
-                    ior: m.ior,
-                    texture: tex_color(m, uv),
+                look.model(position, &model.transform, mesh, model.material, hit)
+            }
+            Object::Mover(i) => {
+                let mover = &self.movers[i as usize];
+                let xf = mover.transform_at(ray.time);
+                match &mover.shape {
+                    MoverShape::Sphere { radius, material } => {
+                        look.sphere(position, &xf, *radius, *material)
+                    }
+                    MoverShape::Triangle(local) => {
+                        let world = WorldTriangle {
+                            positions: local.positions.map(|p| xf.to_world.transform_point3(p)),
+                            normals: local.normals.map(|n| xf.normal_to_world(n)),
+                            tex_coords: local.tex_coords,
+                            materials: local.materials,
+                        };
+                        look.triangle(position, &world, hit.bary)
+                    }
+                    MoverShape::Model { mesh, material } => {
+                        let mesh = &self.meshes[*mesh as usize];
+                        look.model(position, &xf, mesh, *material, hit)
+                    }
                 }
             }
+        }
+    }
+}
+
+/// Material and texture look-ups for [`World::surface`].
+struct Lookup<'a> {
+    materials: &'a [Material],
+    textures: &'a [Texture],
+    filter: TextureFilter,
+}
+
+impl Lookup<'_> {
+    #[inline(always)]
+    fn texture(&self, material: &Material, uv: DVec2) -> DVec3 {
+        match material.texture {
+            Some(t) => self.textures[t as usize].sample(uv, self.filter),
+            None => DVec3::ONE,
+        }
+    }
+
+    #[inline(always)]
+    fn sphere(&self, position: DVec3, xf: &Transform, radius: f64, material: u32) -> Surface {
+        let local = xf.to_local.transform_point3(position) / radius;
+        let unit = local.normalize_or_zero();
+        let normal = xf.normal_to_world(unit);
+        let m = &self.materials[material as usize];
+        Surface {
+            position,
+            normal,
+            geometric_normal: normal,
+            ambient: m.ambient,
+            diffuse: m.diffuse,
+            specular: m.specular,
+            ior: m.ior,
+            texture: self.texture(m, sphere_uv(unit)),
+            glossiness: m.glossiness,
+            absorption: m.absorption,
+        }
+    }
+
+    #[inline(always)]
+    fn triangle(&self, position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Surface {
+        let [b0, b1, b2] = bary;
+        let [p0, p1, p2] = t.positions;
+        let geometric = (p1 - p0).cross(p2 - p0).normalize_or_zero();
+        let interpolated = b0 * t.normals[0] + b1 * t.normals[1] + b2 * t.normals[2];
+        let uv = b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2];
+        let ms = t.materials.map(|m| &self.materials[m as usize]);
+        let blend = |f: &dyn Fn(&Material) -> DVec3| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
+        let scalar = |f: &dyn Fn(&Material) -> f64| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
+        let ior = scalar(&|m| m.ior);
+        Surface {
+            position,
+            normal: interpolated.try_normalize().unwrap_or(geometric),
+            geometric_normal: geometric,
+            ambient: blend(&|m| m.ambient),
+            diffuse: blend(&|m| m.diffuse),
+            specular: blend(&|m| m.specular),
+            ior,
+            texture: blend(&|m| self.texture(m, uv)),
+            // The effects' blends only where a vertex material uses them.
+            glossiness: if ms.iter().any(|m| m.glossiness != 0.0) {
+                scalar(&|m| m.glossiness)
+            } else {
+                0.0
+            },
+            absorption: if ior != 0.0 {
+                blend(&|m| m.absorption)
+            } else {
+                DVec3::ZERO
+            },
+        }
+    }
+
+    #[inline(always)]
+    fn model(
+        &self,
+        position: DVec3,
+        xf: &Transform,
+        mesh: &Mesh,
+        material: u32,
+        hit: &Hit,
+    ) -> Surface {
+        let [b0, b1, b2] = hit.bary;
+        let [i0, i1, i2] = mesh.indices[hit.prim as usize].map(|i| i as usize);
+        let [p0, p1, p2] = mesh.corners[hit.prim as usize];
+        let geometric = xf.normal_to_world((p1 - p0).cross(p2 - p0));
+        let local_n = b0 * mesh.normals[i0] + b1 * mesh.normals[i1] + b2 * mesh.normals[i2];
+        let normal = xf.normal_to_world(local_n);
+        let uv = b0 * mesh.tex_coords[i0] + b1 * mesh.tex_coords[i1] + b2 * mesh.tex_coords[i2];
+        let m = &self.materials[material as usize];
+        Surface {
+            position,
+            normal: if normal == DVec3::ZERO {
+                geometric
+            } else {
+                normal
+            },
+            geometric_normal: geometric,
+            ambient: m.ambient,
+            diffuse: m.diffuse,
+            specular: m.specular,
+            ior: m.ior,
+            texture: self.texture(m, uv),
+            glossiness: m.glossiness,
+            absorption: m.absorption,
         }
     }
 }
@@ -456,6 +705,53 @@ pub fn sphere_uv(p: DVec3) -> DVec2 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::DQuat;
+
+    #[test]
+    fn a_movers_bounds_cover_its_whole_path() {
+        let base = TransformDesc {
+            position: DVec3::new(1.0, 0.0, 0.0),
+            orientation: DQuat::IDENTITY,
+            scale: DVec3::new(2.0, 0.5, 1.0),
+        };
+        let motion = Motion {
+            keys: vec![crate::scene::Keyframe {
+                time: 1.5,
+                transform: TransformDesc {
+                    position: DVec3::new(-2.0, 3.0, 1.0),
+                    orientation: DQuat::from_axis_angle(DVec3::Z, 2.5),
+                    ..base
+                },
+            }],
+            velocity: DVec3::new(0.0, 0.0, -0.3),
+            spin: Some((DVec3::Y, 4.0)),
+        };
+        let mover = Mover {
+            shape: MoverShape::Sphere {
+                radius: 0.7,
+                material: 0,
+            },
+            base,
+            motion,
+        };
+        let span = (0.0, 3.0);
+        let bounds = mover.bounds(&[], span);
+        // Points of the sphere's surface at many times, between the sampled ones too.
+        for i in 0..=997 {
+            let t = span.1 * i as f64 / 997.0;
+            let xf = mover.transform_at(t);
+            for j in 0..64 {
+                let d = crate::shade::uniform_sphere(j as f64 / 64.0, (j * 37 % 64) as f64 / 64.0);
+                let p = xf.to_world.transform_point3(0.7 * d);
+                assert!(
+                    p.cmpge(bounds.min).all() && p.cmple(bounds.max).all(),
+                    "{p} at t={t} outside {bounds:?}"
+                );
+            }
+        }
+        // And the box is not absurdly loose: within a unit of the path's extent.
+        assert!(bounds.extent().max_element() < 10.0, "{bounds:?}");
+    }
 
     #[test]
     fn sphere_uv_follows_the_preview_mesh() {

@@ -250,3 +250,239 @@ fn processing_order_lets_references_point_forward() {
     assert_eq!(desc.triangles.len(), 1);
     assert_eq!(desc.triangles[0].vertices[0].material, 1);
 }
+
+/// The minimal scene with `extra` lines added to the camera, after its orientation (line 8).
+fn camera_with(extra: &str) -> String {
+    scene("").replace(
+        "<orientation a=\"0\" x=\"0\" y=\"1\" z=\"0\"/>\n",
+        &format!("<orientation a=\"0\" x=\"0\" y=\"1\" z=\"0\"/>\n{extra}\n"),
+    )
+}
+
+#[test]
+fn effect_elements_load_with_their_values() {
+    let text = camera_with(
+        "        <aperture v=\"0.2\"/>\n        <focus_distance v=\"7\"/>\n        <shutter open=\"0.25\" close=\"0.75\"/>",
+    )
+    .replace(
+        "<material name=\"m\"/>",
+        "<material name=\"m\"><refractive_index v=\"1.5\"/><glossiness v=\"0.3\"/><absorption r=\"0.1\" g=\"0.2\" b=\"0.3\"/></material>\n    <environment_map file=\"sky.png\" intensity=\"2\" rotation=\"1\"/>\n    <animation frames=\"24\"/>",
+    );
+    let desc = SceneDescription::parse(&text, "t.scene").unwrap();
+    let c = &desc.camera;
+    assert_eq!(
+        (c.aperture, c.focus_distance, c.shutter),
+        (0.2, 7.0, [0.25, 0.75])
+    );
+    assert_eq!(desc.materials[0].glossiness, 0.3);
+    assert_eq!(
+        desc.materials[0].absorption,
+        glam::DVec3::new(0.1, 0.2, 0.3)
+    );
+    assert_eq!(desc.frames, 24);
+    let env = desc.environment.as_ref().unwrap();
+    assert_eq!(
+        (env.file.as_str(), env.intensity, env.rotation),
+        ("sky.png", 2.0, 1.0)
+    );
+    // The map is a referenced asset (the farm bundles it), although no geometry uses it.
+    assert_eq!(desc.referenced_assets(), vec!["sky.png"]);
+    // Defaults: a pinhole, an instant shutter, one frame, no map, no gloss or absorption.
+    let plain = SceneDescription::parse(&scene(""), "t.scene").unwrap();
+    assert_eq!(
+        (plain.camera.aperture, plain.camera.shutter),
+        (0.0, [0.0; 2])
+    );
+    assert_eq!((plain.frames, plain.environment.is_none()), (1, true));
+    assert_eq!(plain.materials[0].glossiness, 0.0);
+    assert!(!plain.has_motion());
+}
+
+#[test]
+fn bad_camera_lens_and_shutter_values() {
+    fails_at(
+        &camera_with("        <aperture v=\"-0.1\"/>\n        <focus_distance v=\"5\"/>"),
+        8,
+        9,
+        "aperture radius must not be negative",
+    );
+    fails_at(
+        &camera_with("        <aperture v=\"0.1\"/>"),
+        2,
+        5,
+        "needs a <focus_distance>",
+    );
+    fails_at(
+        &camera_with("        <aperture v=\"0.1\"/>\n        <focus_distance v=\"inf\"/>"),
+        9,
+        9,
+        "not a finite number",
+    );
+    fails_at(
+        &camera_with("        <focus_distance v=\"0\"/>"),
+        8,
+        9,
+        "must be positive",
+    );
+    fails_at(
+        &camera_with("        <shutter open=\"0.5\" close=\"0.2\"/>"),
+        8,
+        9,
+        "open ≤ close",
+    );
+    fails_at(
+        &camera_with("        <shutter open=\"nan\" close=\"1\"/>"),
+        8,
+        9,
+        "not a finite number",
+    );
+    fails_at(
+        &camera_with("        <aperture v=\"0.1\"/>\n        <aperture v=\"0.2\"/>"),
+        8,
+        9,
+        "<aperture> appears more than once",
+    );
+}
+
+#[test]
+fn bad_material_and_root_effect_values() {
+    let material = |inner: &str| {
+        scene("").replace(
+            "<material name=\"m\"/>",
+            &format!("<material name=\"m\">\n        {inner}\n    </material>"),
+        )
+    };
+    fails_at(
+        &material("<glossiness v=\"-1\"/>"),
+        12,
+        9,
+        "glossiness must not be negative",
+    );
+    fails_at(
+        &material("<glossiness v=\"inf\"/>"),
+        12,
+        9,
+        "not a finite number",
+    );
+    fails_at(
+        &material("<absorption r=\"0.1\" g=\"-0.2\" b=\"0\"/>"),
+        12,
+        9,
+        "must not be negative",
+    );
+    fails_at(
+        &material("<absorption r=\"0.1\" g=\"0.2\"/>"),
+        12,
+        9,
+        "'b' is missing",
+    );
+    fails_at(
+        &scene("    <animation frames=\"0\"/>"),
+        12,
+        5,
+        "whole number from 1",
+    );
+    fails_at(
+        &scene("    <animation frames=\"2.5\"/>"),
+        12,
+        5,
+        "whole number from 1",
+    );
+    fails_at(&scene("    <environment_map/>"), 12, 5, "'file' is missing");
+    fails_at(
+        &scene("    <environment_map file=\"sky.png\" intensity=\"-1\"/>"),
+        12,
+        5,
+        "intensity must not be negative",
+    );
+    fails_at(
+        &scene("    <environment_map file=\"sky.png\" rotation=\"nan\"/>"),
+        12,
+        5,
+        "not a finite number",
+    );
+}
+
+#[test]
+fn bad_motion_keyframes_and_references() {
+    let ball = |inner: &str| {
+        scene(&format!(
+            "    <sphere material=\"m\">\n        <position x=\"0\" y=\"0\" z=\"0\"/>\n        <radius v=\"1\"/>\n{inner}\n    </sphere>"
+        ))
+    };
+    fails_at(
+        &ball("        <keyframe time=\"2\"/>\n        <keyframe time=\"1\"/>"),
+        16,
+        9,
+        "must come after the previous key's time 2",
+    );
+    fails_at(
+        &ball("        <keyframe time=\"0\"/>"),
+        15,
+        9,
+        "must come after",
+    );
+    fails_at(&ball("        <keyframe/>"), 15, 9, "'time' is missing");
+    fails_at(
+        &ball("        <keyframe time=\"1\"><scale x=\"0\" y=\"1\" z=\"1\"/></keyframe>"),
+        15,
+        28,
+        "zero scale",
+    );
+    fails_at(
+        &ball("        <keyframe time=\"1\"><position x=\"inf\" y=\"0\" z=\"0\"/></keyframe>"),
+        15,
+        28,
+        "not a finite number",
+    );
+    fails_at(
+        &ball("        <spin a=\"1\" x=\"0\" y=\"0\" z=\"0\"/>"),
+        15,
+        9,
+        "axis must not be zero",
+    );
+    // A motion reference must name a root <motion>, and excludes inline motion.
+    let referenced = scene(
+        "    <motion name=\"orbit\"><velocity x=\"1\" y=\"0\" z=\"0\"/></motion>\n    <sphere material=\"m\" motion=\"orbi\">\n        <position x=\"0\" y=\"0\" z=\"0\"/>\n        <radius v=\"1\"/>\n    </sphere>",
+    );
+    fails_at(&referenced, 13, 5, "motion \"orbi\", which is not defined");
+    let fixed = referenced.replace("\"orbi\"", "\"orbit\"");
+    let desc = SceneDescription::parse(&fixed, "t.scene").unwrap();
+    assert_eq!(desc.spheres[0].motion.velocity, glam::DVec3::X);
+    let both = fixed.replace(
+        "<radius v=\"1\"/>",
+        "<radius v=\"1\"/><velocity x=\"0\" y=\"1\" z=\"0\"/>",
+    );
+    fails_at(&both, 13, 5, "not both");
+    fails_at(
+        &scene("    <motion name=\"a\"/>\n    <motion name=\"a\"/>"),
+        13,
+        5,
+        "motion \"a\" is defined twice",
+    );
+    // The camera takes a referenced path too.
+    let camera_path = camera_with("").replace("    <camera>", "    <camera motion=\"dolly\">");
+    fails_at(&camera_path, 2, 5, "motion \"dolly\"");
+}
+
+#[test]
+fn a_missing_environment_map_is_an_asset_error_at_its_element() {
+    let text = scene("    <environment_map file=\"maps/sky.png\"/>");
+    let desc = SceneDescription::parse(&text, "t.scene").unwrap();
+    let err = Scene::build(&desc, "t.scene", &MemoryAssets::default()).unwrap_err();
+    assert_eq!((err.line, err.column), (12, 5), "{err}");
+    assert!(
+        err.message.contains("environment map") && err.message.contains("maps/sky.png"),
+        "{err}"
+    );
+    let hdr = scene("    <environment_map file=\"sky.hdr\"/>");
+    let desc = SceneDescription::parse(&hdr, "t.scene").unwrap();
+    let err = Scene::build(&desc, "t.scene", &MemoryAssets::default()).unwrap_err();
+    assert!(err.message.contains("must be a .png"), "{err}");
+    let mut assets = MemoryAssets::default();
+    assets.files.insert("sky.png".into(), b"not a png".to_vec());
+    let junk = scene("    <environment_map file=\"sky.png\"/>");
+    let desc = SceneDescription::parse(&junk, "t.scene").unwrap();
+    let err = Scene::build(&desc, "t.scene", &assets).unwrap_err();
+    assert!(err.message.contains("cannot decode"), "{err}");
+}

@@ -103,6 +103,7 @@ impl SettingsArgs {
                 } else {
                     d.texture_filter
                 },
+                frame: d.frame,
             },
             tile_size: self.tile_size,
         })

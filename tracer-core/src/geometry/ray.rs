@@ -1,11 +1,13 @@
 use glam::DVec3;
 
-/// A ray with its precomputed inverse direction for slab tests.
+/// A ray with its precomputed inverse direction for slab tests, and the time (in frames) it
+/// samples, which only moving geometry reads.
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
     pub origin: DVec3,
     pub dir: DVec3,
     pub inv_dir: DVec3,
+    pub time: f64,
 }
 
 impl Ray {
@@ -32,7 +34,13 @@ impl Ray {
             origin,
             dir,
             inv_dir,
+            time: 0.0,
         }
+    }
+
+    /// The same ray at another time.
+    pub fn at_time(self, time: f64) -> Self {
+        Self { time, ..self }
     }
 
     pub fn at(&self, t: f64) -> DVec3 {

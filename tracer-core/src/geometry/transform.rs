@@ -32,6 +32,7 @@ impl Transform {
             self.to_local.transform_point3(ray.origin),
             self.to_local.transform_vector3(ray.dir),
         )
+        .at_time(ray.time)
     }
 
     pub fn normal_to_world(&self, n: DVec3) -> DVec3 {

@@ -9,8 +9,9 @@ use super::desc::{MaterialDesc, SceneDescription};
 use super::obj::parse_obj;
 use super::{AssetSource, FsAssets, SceneError};
 use crate::geometry::Transform;
+use crate::settings::TextureFilter;
 use crate::texture::Texture;
-use crate::world::{Material, Mesh, Model, Sphere, World, WorldTriangle};
+use crate::world::{Material, Mesh, Model, Mover, MoverShape, Sphere, World, WorldTriangle};
 
 #[derive(Clone, Debug)]
 pub struct Light {
@@ -32,6 +33,44 @@ pub struct SceneStats {
     pub asset_load: Duration,
 }
 
+/// A latitude–longitude image seen by rays that leave the scene.
+#[derive(Clone, Debug)]
+pub struct Environment {
+    pub image: Texture,
+    pub intensity: f64,
+    /// cos and sin of the turn about +Y.
+    rotation: (f64, f64),
+}
+
+impl Environment {
+    pub fn new(image: Texture, intensity: f64, rotation: f64) -> Self {
+        Self {
+            image,
+            intensity,
+            rotation: (rotation.cos(), rotation.sin()),
+        }
+    }
+
+    /// The colour toward unit direction `d`: −Z (the default view) sees the image's centre,
+    /// +Y its top row; u grows turning right, toward +X. Filtered bilinearly, wrapping
+    /// around in u only.
+    pub fn lookup(&self, d: DVec3) -> DVec3 {
+        let (c, s) = self.rotation;
+        // Turning the map by +θ about Y turns the direction by −θ.
+        let x = c * d.x + s * d.z;
+        let z = -s * d.x + c * d.z;
+        let u = 0.5 + x.atan2(-z) / std::f64::consts::TAU;
+        let v = 0.5 + d.y.clamp(-1.0, 1.0).asin() / std::f64::consts::PI;
+        // Rows do not wrap over the poles: stay within the outer rows' centres.
+        let half_row = 0.5 / self.image.dimensions().1 as f64;
+        let v = v.clamp(half_row, 1.0 - half_row);
+        self.intensity
+            * self
+                .image
+                .sample(glam::DVec2::new(u, v), TextureFilter::Bilinear)
+    }
+}
+
 /// A scene ready to render: immutable and shared by every render thread.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -40,10 +79,27 @@ pub struct Scene {
     pub(crate) materials: Vec<Material>,
     pub(crate) textures: Vec<Texture>,
     pub(crate) world: World,
+    pub(crate) environment: Option<Environment>,
+    /// Whether any used material reflects glossily (the tracer then seeds the gloss stream).
+    pub(crate) has_gloss: bool,
     pub stats: SceneStats,
 }
 
 impl Scene {
+    /// The number of frames the scene describes (1 unless it has an `<animation>`).
+    pub fn frame_count(&self) -> u32 {
+        self.description.frames
+    }
+
+    /// What a ray leaving the scene along unit `dir` sees.
+    #[inline]
+    pub fn background(&self, dir: DVec3) -> DVec3 {
+        match &self.environment {
+            Some(env) => env.lookup(dir),
+            None => self.description.background,
+        }
+    }
+
     /// The geometry, for direct ray queries (benchmarks, robustness tests).
     pub fn world(&self) -> &World {
         &self.world
@@ -96,6 +152,8 @@ impl Scene {
                 specular: m.specular,
                 ior: m.refractive_index,
                 texture,
+                glossiness: m.glossiness,
+                absorption: m.absorption,
             });
         }
 
@@ -125,6 +183,14 @@ impl Scene {
                 parse_obj(&text, &assets.display_name(path))
             })
             .collect::<Result<Vec<_>, _>>()?;
+        let environment = match &d.environment {
+            Some(e) => {
+                let image = load_png(&e.file, assets)
+                    .map_err(|m| scene_error(e.pos, format!("environment map: {m}")))?;
+                Some(Environment::new(image, e.intensity, e.rotation))
+            }
+            None => None,
+        };
         let asset_load = load_started.elapsed();
 
         let build_started = Instant::now();
@@ -146,9 +212,11 @@ impl Scene {
             })
             .collect();
 
+        let mut movers = Vec::new();
         let spheres = d
             .spheres
             .iter()
+            .filter(|s| s.motion.is_static())
             .map(|s| Sphere {
                 transform: transform(&s.transform),
                 radius: s.radius,
@@ -158,6 +226,7 @@ impl Scene {
         let world_triangles: Vec<WorldTriangle> = d
             .triangles
             .iter()
+            .filter(|t| t.motion.is_static())
             .map(|t| {
                 let xf = transform(&t.transform);
                 WorldTriangle {
@@ -171,17 +240,53 @@ impl Scene {
                 }
             })
             .collect();
-        triangles_total += world_triangles.len();
+        triangles_total += d.triangles.len();
         let models = d
             .models
             .iter()
+            .filter(|m| m.motion.is_static())
             .map(|m| Model {
                 transform: transform(&m.transform),
                 mesh: mesh_slot[m.mesh],
                 material: m.material as u32,
             })
             .collect();
-        let world = World::new(spheres, world_triangles, meshes, models);
+        // Moving geometry, kept apart so that static objects are intersected as before.
+        for s in d.spheres.iter().filter(|s| !s.motion.is_static()) {
+            movers.push(Mover {
+                shape: MoverShape::Sphere {
+                    radius: s.radius,
+                    material: s.material as u32,
+                },
+                base: s.transform,
+                motion: s.motion.clone(),
+            });
+        }
+        for t in d.triangles.iter().filter(|t| !t.motion.is_static()) {
+            movers.push(Mover {
+                shape: MoverShape::Triangle(WorldTriangle {
+                    positions: t.vertices.each_ref().map(|v| v.position),
+                    normals: t.vertices.each_ref().map(|v| v.normal),
+                    tex_coords: t.vertices.each_ref().map(|v| v.tex_coord),
+                    materials: t.vertices.each_ref().map(|v| v.material as u32),
+                }),
+                base: t.transform,
+                motion: t.motion.clone(),
+            });
+        }
+        for m in d.models.iter().filter(|m| !m.motion.is_static()) {
+            movers.push(Mover {
+                shape: MoverShape::Model {
+                    mesh: mesh_slot[m.mesh],
+                    material: m.material as u32,
+                },
+                base: m.transform,
+                motion: m.motion.clone(),
+            });
+        }
+        // Ray times run from frame 0's shutter opening to the last frame's closing.
+        let time_span = (0.0, (d.frames - 1) as f64 + d.camera.shutter[1]);
+        let world = World::with_movers(spheres, world_triangles, meshes, models, movers, time_span);
         let bvh_build = build_started.elapsed();
 
         let lights = d
@@ -194,9 +299,15 @@ impl Scene {
                 radius: l.radius,
             })
             .collect();
+        let has_gloss = materials
+            .iter()
+            .enumerate()
+            .any(|(i, m)| m.glossiness > 0.0 && d.material_used(i));
         Ok(Scene {
             description: d.clone(),
             lights,
+            has_gloss,
+            environment,
             materials,
             stats: SceneStats {
                 triangles: triangles_total,
@@ -237,4 +348,14 @@ fn load_texture(m: &MaterialDesc, path: &str, assets: &dyn AssetSource) -> Resul
             assets.display_name(path)
         )
     })
+}
+
+fn load_png(path: &str, assets: &dyn AssetSource) -> Result<Texture, String> {
+    if !path.ends_with(".png") {
+        return Err(format!("'{path}' must be a .png file"));
+    }
+    let bytes = assets
+        .read(path)
+        .map_err(|e| format!("cannot read '{}': {e}", assets.display_name(path)))?;
+    Texture::decode_png(&bytes).map_err(|e| format!("'{}': {e}", assets.display_name(path)))
 }

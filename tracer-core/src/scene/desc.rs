@@ -14,6 +14,27 @@ pub struct CameraDesc {
     pub far_clip: f64,
     pub position: DVec3,
     pub orientation: DQuat,
+    /// Thin-lens radius; 0 is the course's pinhole.
+    pub aperture: f64,
+    /// Distance along the view direction of the plane in focus (used when aperture > 0).
+    pub focus_distance: f64,
+    /// Shutter interval in frames after the frame's start; open == close is an instant.
+    pub shutter: [f64; 2],
+    /// Keyed camera path; its scale is unused.
+    pub motion: Motion,
+}
+
+impl CameraDesc {
+    /// Position and orientation at `time` (in frames).
+    pub fn at(&self, time: f64) -> (DVec3, DQuat) {
+        let base = TransformDesc {
+            position: self.position,
+            orientation: self.orientation,
+            scale: DVec3::ONE,
+        };
+        let t = self.motion.at(&base, time);
+        (t.position, t.orientation)
+    }
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -35,6 +56,10 @@ pub struct MaterialDesc {
     pub ambient: DVec3,
     pub diffuse: DVec3,
     pub specular: DVec3,
+    /// Spread of mirror reflections (0 is a perfect mirror).
+    pub glossiness: f64,
+    /// Beer's-law absorption coefficients per unit distance inside a dielectric.
+    pub absorption: DVec3,
     pub pos: Pos,
 }
 
@@ -53,6 +78,81 @@ pub struct TransformDesc {
     pub scale: DVec3,
 }
 
+/// A keyed transform: fields a `<keyframe>` leaves out keep the previous key's values.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Keyframe {
+    /// In frames; keys are strictly increasing and after time 0, where the element's own
+    /// transform is the first key.
+    pub time: f64,
+    pub transform: TransformDesc,
+}
+
+/// How a geometry or the camera moves over time (in frames): keyframes interpolated
+/// piecewise linearly (orientations by slerp) and held past the last key, then a constant
+/// velocity and spin on top. The default is no motion.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Motion {
+    pub keys: Vec<Keyframe>,
+    /// Units per frame.
+    pub velocity: DVec3,
+    /// Unit axis and radians per frame, turning the object about its own position.
+    pub spin: Option<(DVec3, f64)>,
+}
+
+impl Motion {
+    pub fn is_static(&self) -> bool {
+        self.keys.is_empty() && self.velocity == DVec3::ZERO && self.spin.is_none()
+    }
+
+    /// The transform at `time`, `base` being the key at time 0.
+    pub fn at(&self, base: &TransformDesc, time: f64) -> TransformDesc {
+        let mut current = *base;
+        let mut previous_time = 0.0;
+        for key in &self.keys {
+            if time >= key.time {
+                current = key.transform;
+                previous_time = key.time;
+                continue;
+            }
+            // Equal keys hold still exactly (slerp would re-normalise the orientation).
+            if time > previous_time && key.transform != current {
+                let f = (time - previous_time) / (key.time - previous_time);
+                let next = &key.transform;
+                current = TransformDesc {
+                    position: current.position.lerp(next.position, f),
+                    orientation: current.orientation.slerp(next.orientation, f).normalize(),
+                    scale: current.scale.lerp(next.scale, f),
+                };
+            }
+            break;
+        }
+        if self.velocity != DVec3::ZERO {
+            current.position += self.velocity * time;
+        }
+        if let Some((axis, rate)) = self.spin {
+            current.orientation =
+                (DQuat::from_axis_angle(axis, rate * time) * current.orientation).normalize();
+        }
+        current
+    }
+
+    /// Times at which sampling the path bounds it: every key, plus the span's ends.
+    pub fn key_times(&self) -> impl Iterator<Item = f64> + '_ {
+        std::iter::once(0.0).chain(self.keys.iter().map(|k| k.time))
+    }
+}
+
+/// A latitude–longitude background image seen by rays that leave the scene.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EnvironmentDesc {
+    pub file: String,
+    /// Multiplies the image's colours.
+    pub intensity: f64,
+    /// Turn about +Y, in radians.
+    pub rotation: f64,
+    pub pos: Pos,
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct VertexDesc {
     pub position: DVec3,
@@ -65,6 +165,7 @@ pub struct VertexDesc {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SphereDesc {
     pub transform: TransformDesc,
+    pub motion: Motion,
     pub radius: f64,
     pub material: usize,
 }
@@ -72,12 +173,14 @@ pub struct SphereDesc {
 #[derive(Clone, Debug, PartialEq)]
 pub struct TriangleDesc {
     pub transform: TransformDesc,
+    pub motion: Motion,
     pub vertices: [VertexDesc; 3],
 }
 
 #[derive(Clone, Debug, PartialEq)]
 pub struct ModelDesc {
     pub transform: TransformDesc,
+    pub motion: Motion,
     pub mesh: usize,
     pub material: usize,
 }
@@ -98,6 +201,10 @@ pub struct SceneDescription {
     pub spheres: Vec<SphereDesc>,
     pub triangles: Vec<TriangleDesc>,
     pub models: Vec<ModelDesc>,
+    /// Replaces `background` for rays that leave the scene.
+    pub environment: Option<EnvironmentDesc>,
+    /// Frames the scene describes (frame k is time k).
+    pub frames: u32,
 }
 
 impl SceneDescription {
@@ -115,6 +222,14 @@ impl SceneDescription {
                 .triangles
                 .iter()
                 .any(|t| t.vertices.iter().any(|v| v.material == index))
+    }
+
+    /// Whether anything in the scene moves (the camera included).
+    pub fn has_motion(&self) -> bool {
+        !self.camera.motion.is_static()
+            || self.spheres.iter().any(|s| !s.motion.is_static())
+            || self.triangles.iter().any(|t| !t.motion.is_static())
+            || self.models.iter().any(|m| !m.motion.is_static())
     }
 
     /// Whether any model instances mesh `index`.
@@ -137,8 +252,9 @@ impl SceneDescription {
             .enumerate()
             .filter(|(i, _)| self.mesh_used(*i))
             .filter_map(|(_, m)| m.filename.clone());
+        let environment = self.environment.iter().map(|e| e.file.clone());
         let mut out: Vec<String> = Vec::new();
-        for path in textures.chain(meshes) {
+        for path in textures.chain(meshes).chain(environment) {
             if !out.contains(&path) {
                 out.push(path);
             }
@@ -275,6 +391,108 @@ impl Parser<'_> {
             Some(o) => self.orientation(o)?,
             None => DQuat::IDENTITY,
         };
+        let scale = self.scale(el, DVec3::ONE)?;
+        Ok(TransformDesc {
+            position,
+            orientation,
+            scale,
+        })
+    }
+
+    fn non_negative(&self, el: &Element, value: f64, what: &str) -> Result<f64, SceneError> {
+        if value < 0.0 {
+            return Err(self.error(
+                el,
+                format!("in <{}>, {what} must not be negative, not {value}", el.name),
+            ));
+        }
+        Ok(value)
+    }
+
+    /// The motion of `el`: its own `<keyframe>`, `<velocity>` and `<spin>` children, or those
+    /// of the root `<motion>` its `motion` attribute names. Keys start from `base`.
+    fn motion(
+        &self,
+        el: &Element,
+        base: &TransformDesc,
+        named: &[(&str, usize)],
+        definitions: &[&Element],
+    ) -> Result<Motion, SceneError> {
+        let inline = ["keyframe", "velocity", "spin"]
+            .iter()
+            .any(|tag| el.children_named(tag).next().is_some());
+        let source = if el.attr("motion").is_some() {
+            let index = self.lookup(el, "motion", "motion", named)?;
+            if inline {
+                return Err(self.error(
+                    el,
+                    format!(
+                        "in <{}>, give either a 'motion' attribute or keyframe/velocity/spin children, not both",
+                        el.name
+                    ),
+                ));
+            }
+            definitions[index]
+        } else {
+            el
+        };
+        let mut keys: Vec<Keyframe> = Vec::new();
+        let mut previous = *base;
+        let mut previous_time = 0.0;
+        for key in source.children_named("keyframe") {
+            let time = self.number(key, "time")?;
+            if time <= previous_time {
+                return Err(self.error(
+                    key,
+                    format!(
+                        "in <keyframe>, time {time} must come after the previous key's time {previous_time} (the element's own transform is the key at time 0)"
+                    ),
+                ));
+            }
+            let position = match self.single(key, "position")? {
+                Some(p) => self.vec3(p)?,
+                None => previous.position,
+            };
+            let orientation = match self.single(key, "orientation")? {
+                Some(o) => self.orientation(o)?,
+                None => previous.orientation,
+            };
+            let scale = self.scale(key, previous.scale)?;
+            previous = TransformDesc {
+                position,
+                orientation,
+                scale,
+            };
+            previous_time = time;
+            keys.push(Keyframe {
+                time,
+                transform: previous,
+            });
+        }
+        let velocity = match self.single(source, "velocity")? {
+            Some(v) => self.vec3(v)?,
+            None => DVec3::ZERO,
+        };
+        let spin = match self.single(source, "spin")? {
+            Some(sp) => {
+                let rate = self.number(sp, "a")?;
+                let axis = self.vec3(sp)?;
+                if axis == DVec3::ZERO {
+                    return Err(self.error(sp, "in <spin>, the rotation axis must not be zero"));
+                }
+                (rate != 0.0).then(|| (axis.normalize(), rate))
+            }
+            None => None,
+        };
+        Ok(Motion {
+            keys,
+            velocity,
+            spin,
+        })
+    }
+
+    /// An optional `<scale>` child, rejecting zero components.
+    fn scale(&self, el: &Element, default: DVec3) -> Result<DVec3, SceneError> {
         let scale = match self.single(el, "scale")? {
             Some(s) => {
                 let scale = self.vec3(s)?;
@@ -289,13 +507,9 @@ impl Parser<'_> {
                 }
                 scale
             }
-            None => DVec3::ONE,
+            None => default,
         };
-        Ok(TransformDesc {
-            position,
-            orientation,
-            scale,
-        })
+        Ok(scale)
     }
 
     fn lookup(
@@ -335,11 +549,38 @@ impl Parser<'_> {
     }
 
     fn scene(&self, root: &Element) -> Result<SceneDescription, SceneError> {
+        // Named motions (an extension) may be used by the camera and any geometry.
+        let mut motion_names: Vec<(&str, usize)> = Vec::new();
+        let mut motion_defs: Vec<&Element> = Vec::new();
+        for el in root.children_named("motion") {
+            let name = self.attr(el, "name")?;
+            self.check_unique(el, "motion", name, &motion_names)?;
+            motion_names.push((name, motion_defs.len()));
+            motion_defs.push(el);
+        }
+        let motions = (&motion_names[..], &motion_defs[..]);
         // The passes run in the order of §1.1, whatever the document order.
-        let camera = self.camera(self.required(root, "camera")?)?;
+        let camera = self.camera(self.required(root, "camera")?, motions)?;
         let background = self.color(self.required(root, "background_color")?)?;
         let refractive_index = self.scalar(self.required(root, "refractive_index")?)?;
         let ambient = self.optional_color(root, "ambient_light", DVec3::ZERO)?;
+        let environment = self
+            .single(root, "environment_map")?
+            .map(|el| self.environment(el))
+            .transpose()?;
+        let frames = match self.single(root, "animation")? {
+            Some(el) => {
+                let frames = self.number(el, "frames")?;
+                if frames.fract() != 0.0 || !(1.0..=1e6).contains(&frames) {
+                    return Err(self.error(
+                        el,
+                        format!("in <animation>, frames must be a whole number from 1 to 1000000, not {frames}"),
+                    ));
+                }
+                frames as u32
+            }
+            None => 1,
+        };
         let lights = root
             .children_named("point_light")
             .map(|el| self.light(el))
@@ -397,6 +638,7 @@ impl Parser<'_> {
         let mut spheres = Vec::new();
         for el in root.children_named("sphere") {
             let transform = self.transform(el)?;
+            let motion = self.motion(el, &transform, motions.0, motions.1)?;
             let radius_el = self.required(el, "radius")?;
             let radius = self.scalar(radius_el)?;
             if radius <= 0.0 {
@@ -407,6 +649,7 @@ impl Parser<'_> {
             let material = self.lookup(el, "material", "material", &material_names)?;
             spheres.push(SphereDesc {
                 transform,
+                motion,
                 radius,
                 material,
             });
@@ -415,6 +658,7 @@ impl Parser<'_> {
         let mut triangles = Vec::new();
         for el in root.children_named("triangle") {
             let transform = self.transform(el)?;
+            let motion = self.motion(el, &transform, motions.0, motions.1)?;
             let refs: Vec<&Element> = el.children_named("vertex").collect();
             if refs.len() > 3 {
                 return Err(self.error(
@@ -435,6 +679,7 @@ impl Parser<'_> {
             let vertices = [corner(0)?, corner(1)?, corner(2)?];
             triangles.push(TriangleDesc {
                 transform,
+                motion,
                 vertices,
             });
         }
@@ -442,10 +687,12 @@ impl Parser<'_> {
         let mut models = Vec::new();
         for el in root.children_named("model") {
             let transform = self.transform(el)?;
+            let motion = self.motion(el, &transform, motions.0, motions.1)?;
             let mesh = self.lookup(el, "mesh", "mesh", &mesh_names)?;
             let material = self.lookup(el, "material", "material", &material_names)?;
             models.push(ModelDesc {
                 transform,
+                motion,
                 mesh,
                 material,
             });
@@ -463,10 +710,40 @@ impl Parser<'_> {
             spheres,
             triangles,
             models,
+            environment,
+            frames,
         })
     }
 
-    fn camera(&self, el: &Element) -> Result<CameraDesc, SceneError> {
+    fn environment(&self, el: &Element) -> Result<EnvironmentDesc, SceneError> {
+        let file = self.attr(el, "file")?;
+        if file.is_empty() {
+            return Err(self.error(el, "in <environment_map>, 'file' must not be empty"));
+        }
+        let intensity = match el.attr("intensity") {
+            Some(_) => {
+                let v = self.number(el, "intensity")?;
+                self.non_negative(el, v, "intensity")?
+            }
+            None => 1.0,
+        };
+        let rotation = match el.attr("rotation") {
+            Some(_) => self.number(el, "rotation")?,
+            None => 0.0,
+        };
+        Ok(EnvironmentDesc {
+            file: file.to_string(),
+            intensity,
+            rotation,
+            pos: el.pos,
+        })
+    }
+
+    fn camera(
+        &self,
+        el: &Element,
+        motions: (&[(&str, usize)], &[&Element]),
+    ) -> Result<CameraDesc, SceneError> {
         let fov_el = self.required(el, "fov")?;
         let fov = self.scalar(fov_el)?;
         let near_clip = self.scalar(self.required(el, "near_clip")?)?;
@@ -479,12 +756,67 @@ impl Parser<'_> {
                 format!("in <fov>, the field of view must lie strictly between 0 and π radians, not {fov}"),
             ));
         }
+        // Extensions: a thin lens, a shutter interval and a camera path.
+        let aperture = match self.single(el, "aperture")? {
+            Some(a) => {
+                let v = self.scalar(a)?;
+                self.non_negative(a, v, "the aperture radius")?
+            }
+            None => 0.0,
+        };
+        let focus_distance = match self.single(el, "focus_distance")? {
+            Some(f) => {
+                let v = self.scalar(f)?;
+                if v <= 0.0 {
+                    return Err(self.error(
+                        f,
+                        format!(
+                            "in <focus_distance>, the focus distance must be positive, not {v}"
+                        ),
+                    ));
+                }
+                v
+            }
+            None if aperture > 0.0 => {
+                return Err(self.error(
+                    el,
+                    "in <camera>, an <aperture> above 0 needs a <focus_distance>",
+                ))
+            }
+            None => 1.0,
+        };
+        let shutter = match self.single(el, "shutter")? {
+            Some(sh) => {
+                let open = self.number(sh, "open")?;
+                let close = self.number(sh, "close")?;
+                if !(0.0 <= open && open <= close) {
+                    return Err(self.error(
+                        sh,
+                        format!(
+                            "in <shutter>, need 0 ≤ open ≤ close, not open {open}, close {close}"
+                        ),
+                    ));
+                }
+                [open, close]
+            }
+            None => [0.0; 2],
+        };
+        let base = TransformDesc {
+            position,
+            orientation,
+            scale: DVec3::ONE,
+        };
+        let motion = self.motion(el, &base, motions.0, motions.1)?;
         Ok(CameraDesc {
             fov,
             near_clip,
             far_clip,
             position,
             orientation,
+            aperture,
+            focus_distance,
+            shutter,
+            motion,
         })
     }
 
@@ -523,6 +855,26 @@ impl Parser<'_> {
         let specular = self.optional_color(el, "specular", DVec3::ZERO)?;
         // Parsed for the singleton rule and number checks; the ray tracer ignores it.
         self.optional_scalar(el, "shininess", 10.0)?;
+        let glossiness = match self.single(el, "glossiness")? {
+            Some(g) => {
+                let v = self.scalar(g)?;
+                self.non_negative(g, v, "glossiness")?
+            }
+            None => 0.0,
+        };
+        let absorption = match self.single(el, "absorption")? {
+            Some(a) => {
+                let c = self.color(a)?;
+                if c.min_element() < 0.0 {
+                    return Err(self.error(
+                        a,
+                        "in <absorption>, absorption coefficients must not be negative",
+                    ));
+                }
+                c
+            }
+            None => DVec3::ZERO,
+        };
         Ok(MaterialDesc {
             name,
             texture: el
@@ -533,6 +885,8 @@ impl Parser<'_> {
             ambient,
             diffuse,
             specular,
+            glossiness,
+            absorption,
             pos: el.pos,
         })
     }
@@ -592,6 +946,45 @@ pub fn parse_c_double(text: &str) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn motion_interpolates_between_keys_and_holds_after_the_last() {
+        let base = TransformDesc {
+            position: DVec3::ZERO,
+            orientation: DQuat::IDENTITY,
+            scale: DVec3::ONE,
+        };
+        let key = |time: f64, x: f64, angle: f64| Keyframe {
+            time,
+            transform: TransformDesc {
+                position: DVec3::new(x, 0.0, 0.0),
+                orientation: DQuat::from_axis_angle(DVec3::Y, angle),
+                scale: DVec3::ONE,
+            },
+        };
+        let motion = Motion {
+            keys: vec![key(2.0, 4.0, 1.0), key(3.0, 6.0, 1.0)],
+            ..Motion::default()
+        };
+        assert!(!motion.is_static() && Motion::default().is_static());
+        assert_eq!(motion.at(&base, 0.0), base);
+        let half = motion.at(&base, 1.0);
+        assert!((half.position.x - 2.0).abs() < 1e-12);
+        assert!((half.orientation.angle_between(DQuat::IDENTITY) - 0.5).abs() < 1e-12);
+        assert!((motion.at(&base, 2.5).position.x - 5.0).abs() < 1e-12);
+        assert_eq!(motion.at(&base, 7.0).position.x, 6.0);
+        // Velocity and spin add on top, growing with time.
+        let moving = Motion {
+            velocity: DVec3::new(0.0, 1.0, 0.0),
+            spin: Some((DVec3::Z, 0.25)),
+            ..motion
+        };
+        let late = moving.at(&base, 4.0);
+        assert_eq!(late.position, DVec3::new(6.0, 4.0, 0.0));
+        let expected =
+            DQuat::from_axis_angle(DVec3::Z, 1.0) * DQuat::from_axis_angle(DVec3::Y, 1.0);
+        assert!(late.orientation.angle_between(expected) < 1e-9);
+    }
 
     #[test]
     fn c_double_prefixes() {

@@ -9,10 +9,10 @@ mod obj;
 mod xml;
 
 pub use assets::{AssetSource, FsAssets, MemoryAssets};
-pub use build::{Light, Scene, SceneStats};
+pub use build::{Environment, Light, Scene, SceneStats};
 pub use desc::{
-    parse_c_double, CameraDesc, LightDesc, MaterialDesc, MeshDesc, ModelDesc, SceneDescription,
-    SphereDesc, TransformDesc, TriangleDesc, VertexDesc,
+    parse_c_double, CameraDesc, EnvironmentDesc, Keyframe, LightDesc, MaterialDesc, MeshDesc,
+    ModelDesc, Motion, SceneDescription, SphereDesc, TransformDesc, TriangleDesc, VertexDesc,
 };
 pub use error::SceneError;
 pub use obj::{parse_obj, smooth_normals, MeshData};

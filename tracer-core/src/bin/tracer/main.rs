@@ -37,6 +37,13 @@ enum Command {
         /// No progress bar.
         #[arg(long, short)]
         quiet: bool,
+        /// Render this frame of an animated scene (0-based), to the output as named.
+        #[arg(long, conflicts_with = "frames")]
+        frame: Option<u32>,
+        /// Render frames A through B inclusive (A..B), each to the output name with the
+        /// frame number inserted: out.png → out_0003.png.
+        #[arg(long, value_parser = parse_frames)]
+        frames: Option<(u32, u32)>,
     },
     /// Measure error against run time over sample counts and thread counts, against a
     /// high-sample reference: report.csv, report.md and error_vs_time.png.
@@ -111,8 +118,39 @@ impl SettingsArgs {
             } else {
                 TextureFilter::Nearest
             },
+            frame: 0,
         }
     }
+}
+
+/// `A..B`, inclusive, with A ≤ B.
+fn parse_frames(s: &str) -> Result<(u32, u32), String> {
+    let (a, b) = s
+        .split_once("..")
+        .ok_or_else(|| format!("expected A..B, got '{s}'"))?;
+    let num = |t: &str| {
+        t.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("'{t}' is not a frame number"))
+    };
+    let (a, b) = (num(a)?, num(b)?);
+    if a > b {
+        return Err(format!("the range {a}..{b} is empty"));
+    }
+    Ok((a, b))
+}
+
+/// `out.png` with frame 3 → `out_0003.png`.
+fn numbered(output: &std::path::Path, frame: u32) -> PathBuf {
+    let stem = output
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let name = match output.extension() {
+        Some(ext) => format!("{stem}_{frame:04}.{}", ext.to_string_lossy()),
+        None => format!("{stem}_{frame:04}"),
+    };
+    output.with_file_name(name)
 }
 
 fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
@@ -159,40 +197,36 @@ fn run(cli: Cli) -> Result<(), String> {
             settings,
             threads,
             quiet,
+            frame,
+            frames,
         } => {
-            let settings = settings.to_settings();
+            let mut settings = settings.to_settings();
             let pool = thread_pool(threads)?;
             let started = Instant::now();
             let scene = pool
                 .install(|| Scene::load(&scene))
                 .map_err(|e| e.to_string())?;
-            let renderer = Renderer::new(&scene, &settings)?;
-            let total = settings.width as u64 * settings.height as u64;
-            let bar = if quiet || !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
-                ProgressBar::hidden()
-            } else {
-                ProgressBar::new(total).with_style(
-                    ProgressStyle::with_template(
-                        "{bar:40} {percent:>3}% {elapsed_precise} ETA {eta}",
-                    )
-                    .expect("static template"),
-                )
+            let Some((first, last)) = frames else {
+                settings.frame = frame.unwrap_or(0);
+                return render_frame(&scene, &settings, &pool, &output, quiet, started);
             };
-            let image = pool.install(|| renderer.render_image(&|done, _| bar.set_position(done)));
-            bar.finish_and_clear();
-            image
-                .write_png(&output)
-                .map_err(|e| format!("cannot write {}: {e}", output.display()))?;
-            let seconds = started.elapsed().as_secs_f64();
-            let rays = renderer.rays_traced();
-            eprintln!(
-                "{}: {}x{} at {} spp in {seconds:.2} s, {rays} rays, {:.1} Mrays/s",
-                output.display(),
-                settings.width,
-                settings.height,
-                settings.spp,
-                rays as f64 / seconds / 1e6
-            );
+            if last >= scene.frame_count() {
+                return Err(format!(
+                    "--frames {first}..{last}: the scene has {} frame(s), numbered from 0",
+                    scene.frame_count()
+                ));
+            }
+            for f in first..=last {
+                settings.frame = f;
+                render_frame(
+                    &scene,
+                    &settings,
+                    &pool,
+                    &numbered(&output, f),
+                    quiet,
+                    Instant::now(),
+                )?;
+            }
             Ok(())
         }
         Command::Report(args) => report::run(args),
@@ -250,4 +284,41 @@ fn run(cli: Cli) -> Result<(), String> {
             Ok(())
         }
     }
+}
+
+/// Renders one frame of `scene` to `output`, reporting time and ray rate on stderr.
+fn render_frame(
+    scene: &Scene,
+    settings: &RenderSettings,
+    pool: &rayon::ThreadPool,
+    output: &std::path::Path,
+    quiet: bool,
+    started: Instant,
+) -> Result<(), String> {
+    let renderer = Renderer::new(scene, settings)?;
+    let total = settings.width as u64 * settings.height as u64;
+    let bar = if quiet || !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(total).with_style(
+            ProgressStyle::with_template("{bar:40} {percent:>3}% {elapsed_precise} ETA {eta}")
+                .expect("static template"),
+        )
+    };
+    let image = pool.install(|| renderer.render_image(&|done, _| bar.set_position(done)));
+    bar.finish_and_clear();
+    image
+        .write_png(output)
+        .map_err(|e| format!("cannot write {}: {e}", output.display()))?;
+    let seconds = started.elapsed().as_secs_f64();
+    let rays = renderer.rays_traced();
+    eprintln!(
+        "{}: {}x{} at {} spp in {seconds:.2} s, {rays} rays, {:.1} Mrays/s",
+        output.display(),
+        settings.width,
+        settings.height,
+        settings.spp,
+        rays as f64 / seconds / 1e6
+    );
+    Ok(())
 }
