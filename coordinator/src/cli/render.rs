@@ -103,7 +103,7 @@ fn render(args: RenderArgs) -> Result<(), String> {
                 let _ = server_stop.await;
             },
         ));
-        let client = Client::new(&url, Some(token)).map_err(|e| e.to_string())?;
+        let client = Client::new(&url, Some(token.clone())).map_err(|e| e.to_string())?;
 
         let (stop_workers, shutdown) = Shutdown::new();
         let scenes = SceneCache::new();
@@ -117,6 +117,8 @@ fn render(args: RenderArgs) -> Result<(), String> {
             handles.push(tokio::spawn(async move { worker.run(shutdown).await }));
         }
 
+        // The fragment hands the page the token without sending it anywhere.
+        eprintln!("dashboard (while it renders): {url}/#token={token}");
         let result = submit_and_wait(&client, &submission, &output, workers, threads, start).await;
         let _ = stop_workers.send(true);
         for handle in handles {
