@@ -102,9 +102,9 @@ async function resync() {
   state.jobs.clear();
   state.rows.clear();
   document.querySelector('#jobs tbody').replaceChildren();
+  // The selected job's tiles and preview reload as its info comes in again.
   for (const job of jobs) onJob(job);
   renderWorkers();
-  if (state.selected != null && state.jobs.has(state.selected)) select(state.selected);
 }
 
 async function followEvents() {

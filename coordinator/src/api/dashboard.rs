@@ -12,9 +12,10 @@ const INDEX_HTML: &str = include_str!("../../dashboard/index.html");
 const DASHBOARD_CSS: &str = include_str!("../../dashboard/dashboard.css");
 const DASHBOARD_JS: &str = include_str!("../../dashboard/dashboard.js");
 
-/// The page loads nothing from elsewhere; previews are `blob:` URLs of fetched PNGs.
+/// The page loads nothing from elsewhere; previews are `blob:` URLs of fetched PNGs (which a
+/// script may read back).
 const CSP: &str = "default-src 'self'; img-src 'self' blob:; style-src 'self'; \
-                   script-src 'self'; connect-src 'self'; frame-ancestors 'none'";
+                   script-src 'self'; connect-src 'self' blob:; frame-ancestors 'none'";
 
 fn file(content_type: &'static str, body: &'static str) -> impl IntoResponse {
     (
