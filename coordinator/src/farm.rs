@@ -1199,6 +1199,76 @@ mod tests {
     }
 
     #[test]
+    fn tiles_and_workers_report_their_state_and_changes_are_announced() {
+        let f = fixture(FarmConfig::default());
+        let mut events = f.farm.subscribe();
+        let job = f.farm.submit(new_job("a")).unwrap();
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Job(job.id));
+        let states = |farm: &Farm| -> Vec<TileState> {
+            farm.tiles(job.id)
+                .unwrap()
+                .iter()
+                .map(|t| t.state)
+                .collect()
+        };
+
+        let l1 = f.farm.lease("w1").unwrap().unwrap();
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Tile(job.id, 0));
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Job(job.id));
+        assert_eq!(f.farm.tile(job.id, 0).unwrap().workers, ["w1"]);
+        assert_eq!(states(&f.farm)[..2], [TileState::Leased, TileState::Queued]);
+        let w = &f.farm.workers()[0];
+        assert_eq!(
+            (w.state, w.lease.map(|l| l.tile)),
+            (WorkerState::Rendering, Some(0))
+        );
+        finish(&f.farm, &l1);
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Tile(job.id, 0));
+        let w = &f.farm.workers()[0];
+        assert_eq!((w.state, w.tiles_done), (WorkerState::Idle, 1));
+
+        // A failed tile shows its attempts, leased again or not.
+        let l2 = f.farm.lease("w2").unwrap().unwrap();
+        let report = FailureReport {
+            error: "boom".into(),
+            scene: false,
+        };
+        f.farm.fail(l2.lease_id, &report).unwrap();
+        let tile = f.farm.tile(job.id, l2.tile).unwrap();
+        assert_eq!((tile.state, tile.attempts), (TileState::Failed, 1));
+
+        // A worker whose lease lapses is lost; one silent past a long poll too.
+        let l3 = f.farm.lease("w3").unwrap().unwrap();
+        assert_eq!(l3.tile, l2.tile);
+        f.clock.advance(5_001);
+        f.farm.expire_leases().unwrap();
+        let by_name = |name: &str| {
+            let workers = f.farm.workers();
+            workers.into_iter().find(|w| w.name == name).unwrap().state
+        };
+        assert_eq!(by_name("w3"), WorkerState::Lost);
+        assert_eq!(by_name("w1"), WorkerState::Idle);
+        f.clock.advance(31_000);
+        assert_eq!(by_name("w1"), WorkerState::Lost);
+
+        f.farm.cancel(job.id).unwrap();
+        assert_eq!(
+            states(&f.farm),
+            [
+                TileState::Done,
+                TileState::Failed,
+                TileState::Idle,
+                TileState::Idle
+            ]
+        );
+        assert!(matches!(
+            f.farm.tile(job.id, 4),
+            Err(FarmError::NotFound(_))
+        ));
+        assert!(matches!(f.farm.tiles(99), Err(FarmError::NotFound(_))));
+    }
+
+    #[test]
     fn a_silent_worker_loses_its_tile_without_a_failure() {
         let f = fixture(FarmConfig::default());
         let job = f.farm.submit(new_job("a")).unwrap();
