@@ -196,7 +196,7 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
         tmp.path().join("c.log"),
     );
     let client = Client::new(&coord.url, Some(TOKEN.into())).unwrap();
-    // One single-threaded worker: slow enough to watch the render go by.
+    // One single-threaded worker: slow enough (a few seconds) to watch the render go by.
     let _worker = start_worker(
         &coord.url,
         "dash-worker",
@@ -237,10 +237,10 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     )
     .await;
     for (field, value) in [
-        ("width", "320"),
-        ("height", "240"),
-        ("spp", "4"),
-        ("tile-size", "32"),
+        ("width", "480"),
+        ("height", "360"),
+        ("spp", "12"),
+        ("tile-size", "40"),
     ] {
         set_field(&browser, field, value).await;
     }
@@ -265,7 +265,7 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     let job_a = client.job(a).await.unwrap();
     assert_eq!(
         (job_a.spec.render.width, job_a.tiles_total),
-        (320, 80),
+        (480, 108),
         "{job_a:?}"
     );
 
@@ -308,7 +308,7 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     assert_eq!(client.job(b).await.unwrap().state, JobState::Cancelled);
 
     // The first reaches 100%, and the preview is exactly the job's PNG.
-    wait_js(&browser, &progress_a, |v| v == "80/80 (100%)").await;
+    wait_js(&browser, &progress_a, |v| v == "108/108 (100%)").await;
     wait_js(
         &browser,
         &format!("document.getElementById('job-{a}').dataset.state"),
@@ -328,7 +328,7 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
         "the preview differs from the job's PNG"
     );
     let done_tiles = "document.querySelectorAll('#tile-map .tile.done').length";
-    wait_js(&browser, done_tiles, |v| v == 80).await;
+    wait_js(&browser, done_tiles, |v| v == 108).await;
 
     // Orbit right and ask for a quick look: a new job from the moved camera.
     let camera: Value = reqwest::Client::new()
@@ -380,7 +380,7 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
         (distance(moved.position) - distance(original)).abs() < 1e-9,
         "an orbit keeps its radius"
     );
-    assert_eq!((job_c.spec.render.width, job_c.spec.render.spp), (80, 1));
+    assert_eq!((job_c.spec.render.width, job_c.spec.render.spp), (120, 1));
 
     // A broken scene is refused with its location shown by the form.
     let broken = tmp.path().join("broken.scene");
