@@ -17,6 +17,7 @@ use crate::farm::Farm;
 pub struct EmbeddedFarm {
     client: Client,
     url: String,
+    token: String,
     workers: usize,
     threads: usize,
     stop_workers: tokio::sync::watch::Sender<bool>,
@@ -81,7 +82,7 @@ impl EmbeddedFarm {
                 let _ = server_stop.await;
             },
         ));
-        let client = Client::new(&url, Some(token)).map_err(|e| e.to_string())?;
+        let client = Client::new(&url, Some(token.clone())).map_err(|e| e.to_string())?;
 
         let (stop_workers, shutdown) = Shutdown::new();
         let scenes = SceneCache::new();
@@ -97,6 +98,7 @@ impl EmbeddedFarm {
         Ok(Self {
             client,
             url,
+            token,
             workers,
             threads,
             stop_workers,
@@ -115,6 +117,11 @@ impl EmbeddedFarm {
     /// The coordinator's base URL (loopback).
     pub fn url(&self) -> &str {
         &self.url
+    }
+
+    /// The bearer token the farm demands (random per start).
+    pub fn token(&self) -> &str {
+        &self.token
     }
 
     /// How many workers run, and how many render threads they share.

@@ -16,11 +16,12 @@ use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use tokio::sync::broadcast;
 use tokio::sync::Notify;
 use tracer_core::TileRect;
 use worker::protocol::{
     ApiError, Bundle, BundleFile, Completion, FailureReport, JobInfo, JobSpec, JobState, Lease,
-    LeaseStatus, TileFailure,
+    LeaseStatus, TileFailure, TileInfo, TileState, WorkerInfo, WorkerLease, WorkerState,
 };
 
 use crate::clock::Clock;
@@ -195,6 +196,29 @@ impl Job {
     }
 }
 
+/// What changed, for `GET /events`: readers look the current state up, so a burst of changes
+/// to one job costs one message.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub enum FarmEvent {
+    Job(u64),
+    Tile(u64, u32),
+    /// The farm is stopping: event streams end so the server can.
+    Stopping,
+}
+
+/// How many events a slow reader may fall behind before it is told to resynchronise.
+const EVENT_BACKLOG: usize = 4096;
+
+/// What the farm knows of one worker since it started.
+#[derive(Debug, Default)]
+struct WorkerRecord {
+    last_seen_ms: u64,
+    address: Option<String>,
+    tiles_done: u64,
+    /// Its last lease lapsed without a heartbeat (cleared when it is heard from again).
+    lapsed: bool,
+}
+
 #[derive(Clone, Debug)]
 struct LiveLease {
     job_id: u64,
@@ -212,13 +236,47 @@ struct State {
     next_lease: u64,
     /// Why recent leases ended, for clear 409 messages (bounded).
     ended: HashMap<u64, &'static str>,
-    /// Worker name → last time it asked for work or heartbeat.
-    workers: HashMap<String, u64>,
+    workers: HashMap<String, WorkerRecord>,
 }
 
 const ENDED_KEEP: usize = 100_000;
 
 impl State {
+    /// Records that `worker` was heard from.
+    fn seen(&mut self, worker: &str, now: u64) -> &mut WorkerRecord {
+        let record = self.workers.entry(worker.to_string()).or_default();
+        record.last_seen_ms = now;
+        record.lapsed = false;
+        record
+    }
+
+    fn tile_info(&self, job: &Job, tile: u32) -> TileInfo {
+        let t = &job.tiles[tile as usize];
+        let state = if t.done {
+            TileState::Done
+        } else if !t.leases.is_empty() {
+            TileState::Leased
+        } else if t.attempts > 0 {
+            TileState::Failed
+        } else if job.is_active() {
+            TileState::Queued
+        } else {
+            TileState::Idle
+        };
+        TileInfo {
+            job_id: job.id,
+            tile,
+            rect: t.rect,
+            state,
+            workers: t
+                .leases
+                .iter()
+                .filter_map(|l| self.leases.get(l).map(|l| l.worker.clone()))
+                .collect(),
+            attempts: t.attempts as u32,
+        }
+    }
+
     fn end_lease(&mut self, id: u64, why: &'static str) -> Option<LiveLease> {
         let lease = self.leases.remove(&id)?;
         if self.by_worker.get(&lease.worker) == Some(&id) {
@@ -317,6 +375,7 @@ pub struct Farm {
     epoch: u64,
     pub metrics: Metrics,
     tile_writes: AtomicU64,
+    events: broadcast::Sender<FarmEvent>,
 }
 
 impl Farm {
@@ -400,6 +459,7 @@ impl Farm {
             epoch,
             metrics: Metrics::default(),
             tile_writes: AtomicU64::new(0),
+            events: broadcast::channel(EVENT_BACKLOG).0,
         });
         // Jobs whose last tile landed just before a crash.
         for id in finished {
@@ -452,6 +512,28 @@ impl Farm {
     pub fn stop(&self) {
         self.stopping.store(true, Ordering::SeqCst);
         self.work.notify_waiters();
+        self.emit(FarmEvent::Stopping);
+    }
+
+    /// Subscribes to change notifications (`GET /events`).
+    pub fn subscribe(&self) -> broadcast::Receiver<FarmEvent> {
+        self.events.subscribe()
+    }
+
+    fn emit(&self, event: FarmEvent) {
+        // An error only means nobody is listening.
+        let _ = self.events.send(event);
+    }
+
+    fn emit_tile(&self, job_id: u64, tile: u32) {
+        self.emit(FarmEvent::Tile(job_id, tile));
+        self.emit(FarmEvent::Job(job_id));
+    }
+
+    /// Records the address a worker's lease request came from (for `GET /workers`).
+    pub fn worker_address(&self, worker: &str, address: String) {
+        let now = self.now_ms();
+        self.lock().seen(worker, now).address = Some(address);
     }
 
     pub fn is_stopping(&self) -> bool {
@@ -496,6 +578,7 @@ impl Farm {
         state.jobs.insert(job.id, job);
         drop(state);
         self.work.notify_waiters();
+        self.emit(FarmEvent::Job(info.id));
         Ok(info)
     }
 
@@ -504,7 +587,7 @@ impl Farm {
     pub fn lease(&self, worker: &str) -> Result<Option<Lease>> {
         let now = self.now_ms();
         let mut state = self.lock();
-        state.workers.insert(worker.to_string(), now);
+        state.seen(worker, now);
         if let Some(&id) = state.by_worker.get(worker) {
             let deadline = now + self.config.lease_timeout.as_millis() as u64;
             let lease = state.leases.get_mut(&id).expect("by_worker follows leases");
@@ -547,7 +630,10 @@ impl Farm {
         state.leases.insert(id, lease.clone());
         state.by_worker.insert(worker.to_string(), id);
         self.metrics.leases_granted.fetch_add(1, Ordering::Relaxed);
-        Ok(Some(self.describe(&state, id, &lease)))
+        let granted = self.describe(&state, id, &lease);
+        drop(state);
+        self.emit_tile(job_id, tile);
+        Ok(Some(granted))
     }
 
     fn describe(&self, state: &State, id: u64, lease: &LiveLease) -> Lease {
@@ -620,7 +706,7 @@ impl Farm {
             lease.deadline_ms = now + timeout;
             lease.worker.clone()
         };
-        state.workers.insert(worker, now);
+        state.seen(&worker, now);
         Ok(LeaseStatus {
             expires_in_ms: timeout,
         })
@@ -662,6 +748,7 @@ impl Farm {
             state.end_lease(other, "another worker finished the tile first");
         }
         state.end_lease(lease_id, "the tile is finished");
+        state.seen(&lease.worker, now).tiles_done += 1;
         let job = state.job_mut(job_id)?;
         job.tiles[tile as usize].done = true;
         job.queued.remove(&tile);
@@ -677,6 +764,8 @@ impl Farm {
             tiles_total: job.total(),
         };
         self.metrics.tiles_completed.fetch_add(1, Ordering::Relaxed);
+        drop(state);
+        self.emit_tile(job_id, tile);
         Ok((answer, complete.then_some(job_id)))
     }
 
@@ -698,6 +787,8 @@ impl Farm {
                 }
                 state.job_mut(job_id)?.assembling = false;
                 state.finish_job(job_id, JobState::Failed, Some(error), now, "the job failed")?;
+                drop(state);
+                self.emit(FarmEvent::Job(job_id));
                 Err(e)
             }
         }
@@ -736,10 +827,23 @@ impl Farm {
             .db
             .set_job_state(job_id, JobState::Done, None, started, Some(now))?;
         tracing::info!("job {job_id}: done in {elapsed:.2}s");
+        drop(state);
+        self.emit(FarmEvent::Job(job_id));
         Ok(())
     }
 
     pub fn fail(&self, lease_id: u64, report: &FailureReport) -> Result<JobInfo> {
+        let (job_id, tile) = {
+            let state = self.lock();
+            let lease = state.live(lease_id)?;
+            (lease.job_id, lease.tile)
+        };
+        let info = self.record_failure(lease_id, report)?;
+        self.emit_tile(job_id, tile);
+        Ok(info)
+    }
+
+    fn record_failure(&self, lease_id: u64, report: &FailureReport) -> Result<JobInfo> {
         let now = self.now_ms();
         let mut state = self.lock();
         let lease = state.live(lease_id)?.clone();
@@ -812,6 +916,7 @@ impl Farm {
         if requeued {
             self.work.notify_waiters();
         }
+        self.emit_tile(lease.job_id, lease.tile);
         Ok(())
     }
 
@@ -826,11 +931,16 @@ impl Farm {
             .map(|(id, _)| *id)
             .collect();
         let mut requeued = false;
+        let mut changed = Vec::new();
         for &id in &expired {
             let lease = state
                 .end_lease(id, "it expired without a heartbeat")
                 .expect("live");
             state.db.delete_lease(id)?;
+            if let Some(worker) = state.workers.get_mut(&lease.worker) {
+                worker.lapsed = true;
+            }
+            changed.push((lease.job_id, lease.tile));
             tracing::warn!(
                 "job {} tile {}: lease {id} of {} expired; requeued",
                 lease.job_id,
@@ -845,6 +955,9 @@ impl Farm {
             .fetch_add(expired.len() as u64, Ordering::Relaxed);
         if requeued {
             self.work.notify_waiters();
+        }
+        for (job_id, tile) in changed {
+            self.emit_tile(job_id, tile);
         }
         Ok(expired.len())
     }
@@ -867,7 +980,10 @@ impl Farm {
             "the job was cancelled",
         )?;
         tracing::info!("job {job_id}: cancelled");
-        Ok(state.job(job_id)?.info(now))
+        let info = state.job(job_id)?.info(now);
+        drop(state);
+        self.emit(FarmEvent::Job(job_id));
+        Ok(info)
     }
 
     /// Requeues a failed job's unfinished tiles with fresh failure counts.
@@ -903,6 +1019,7 @@ impl Farm {
             .set_job_state(job_id, state_now, None, started, None)?;
         drop(state);
         self.work.notify_waiters();
+        self.emit(FarmEvent::Job(job_id));
         Ok(info)
     }
 
@@ -925,6 +1042,65 @@ impl Farm {
             scene_hash: job.scene_hash.clone(),
             assets: job.assets.clone(),
         })
+    }
+
+    /// Every tile of a job with its state, lease holders and failed attempts.
+    pub fn tiles(&self, job_id: u64) -> Result<Vec<TileInfo>> {
+        let state = self.lock();
+        let job = state.job(job_id)?;
+        Ok((0..job.total()).map(|t| state.tile_info(job, t)).collect())
+    }
+
+    /// One tile, for the event stream.
+    pub fn tile(&self, job_id: u64, tile: u32) -> Result<TileInfo> {
+        let state = self.lock();
+        let job = state.job(job_id)?;
+        if tile >= job.total() {
+            return Err(FarmError::NotFound(format!(
+                "job {job_id} has no tile {tile}"
+            )));
+        }
+        Ok(state.tile_info(job, tile))
+    }
+
+    /// Every worker heard from since start-up, by name. A worker is lost when its lease
+    /// lapsed, or when it has been silent for longer than a long poll and a lease timeout
+    /// (an idle worker re-asks at least once per long poll).
+    pub fn workers(&self) -> Vec<WorkerInfo> {
+        let now = self.now_ms();
+        let silent_limit =
+            (self.config.max_poll_wait + self.config.lease_timeout).as_millis() as u64;
+        let state = self.lock();
+        let mut list: Vec<WorkerInfo> = state
+            .workers
+            .iter()
+            .map(|(name, record)| {
+                let lease = state
+                    .by_worker
+                    .get(name)
+                    .and_then(|id| state.leases.get(id));
+                let worker_state = if lease.is_some() {
+                    WorkerState::Rendering
+                } else if record.lapsed || now.saturating_sub(record.last_seen_ms) > silent_limit {
+                    WorkerState::Lost
+                } else {
+                    WorkerState::Idle
+                };
+                WorkerInfo {
+                    name: name.clone(),
+                    address: record.address.clone(),
+                    state: worker_state,
+                    lease: lease.map(|l| WorkerLease {
+                        job_id: l.job_id,
+                        tile: l.tile,
+                    }),
+                    tiles_done: record.tiles_done,
+                    last_seen_ms: record.last_seen_ms,
+                }
+            })
+            .collect();
+        list.sort_by(|a, b| a.name.cmp(&b.name));
+        list
     }
 
     /// The job's PNG: the stored final image, or one assembled from the finished tiles with
@@ -972,7 +1148,7 @@ impl Farm {
         let active = state
             .workers
             .values()
-            .filter(|&&seen| now.saturating_sub(seen) < 60_000)
+            .filter(|w| now.saturating_sub(w.last_seen_ms) < 60_000)
             .count();
         let gauges = crate::metrics::Gauges {
             jobs_by_state,
@@ -1048,6 +1224,76 @@ mod tests {
         assert_ne!(l1.lease_id, l2.lease_id);
         assert_eq!(f.farm.job(a.id).unwrap().state, JobState::Running);
         assert_eq!(f.farm.job(b.id).unwrap().state, JobState::Queued);
+    }
+
+    #[test]
+    fn tiles_and_workers_report_their_state_and_changes_are_announced() {
+        let f = fixture(FarmConfig::default());
+        let mut events = f.farm.subscribe();
+        let job = f.farm.submit(new_job("a")).unwrap();
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Job(job.id));
+        let states = |farm: &Farm| -> Vec<TileState> {
+            farm.tiles(job.id)
+                .unwrap()
+                .iter()
+                .map(|t| t.state)
+                .collect()
+        };
+
+        let l1 = f.farm.lease("w1").unwrap().unwrap();
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Tile(job.id, 0));
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Job(job.id));
+        assert_eq!(f.farm.tile(job.id, 0).unwrap().workers, ["w1"]);
+        assert_eq!(states(&f.farm)[..2], [TileState::Leased, TileState::Queued]);
+        let w = &f.farm.workers()[0];
+        assert_eq!(
+            (w.state, w.lease.map(|l| l.tile)),
+            (WorkerState::Rendering, Some(0))
+        );
+        finish(&f.farm, &l1);
+        assert_eq!(events.try_recv().unwrap(), FarmEvent::Tile(job.id, 0));
+        let w = &f.farm.workers()[0];
+        assert_eq!((w.state, w.tiles_done), (WorkerState::Idle, 1));
+
+        // A failed tile shows its attempts, leased again or not.
+        let l2 = f.farm.lease("w2").unwrap().unwrap();
+        let report = FailureReport {
+            error: "boom".into(),
+            scene: false,
+        };
+        f.farm.fail(l2.lease_id, &report).unwrap();
+        let tile = f.farm.tile(job.id, l2.tile).unwrap();
+        assert_eq!((tile.state, tile.attempts), (TileState::Failed, 1));
+
+        // A worker whose lease lapses is lost; one silent past a long poll too.
+        let l3 = f.farm.lease("w3").unwrap().unwrap();
+        assert_eq!(l3.tile, l2.tile);
+        f.clock.advance(5_001);
+        f.farm.expire_leases().unwrap();
+        let by_name = |name: &str| {
+            let workers = f.farm.workers();
+            workers.into_iter().find(|w| w.name == name).unwrap().state
+        };
+        assert_eq!(by_name("w3"), WorkerState::Lost);
+        assert_eq!(by_name("w1"), WorkerState::Idle);
+        f.clock.advance(31_000);
+        assert_eq!(by_name("w1"), WorkerState::Lost);
+
+        f.farm.cancel(job.id).unwrap();
+        assert_eq!(
+            states(&f.farm),
+            [
+                TileState::Done,
+                TileState::Failed,
+                TileState::Idle,
+                TileState::Idle
+            ]
+        );
+        assert!(matches!(
+            f.farm.tile(job.id, 4),
+            Err(FarmError::NotFound(_))
+        ));
+        assert!(matches!(f.farm.tiles(99), Err(FarmError::NotFound(_))));
     }
 
     #[test]

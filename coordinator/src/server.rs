@@ -2,6 +2,7 @@
 //! shutdown future resolves.
 
 use std::future::Future;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -24,6 +25,8 @@ pub async fn serve(
     let reaper = tokio::spawn(reap(farm.clone()));
     let app = crate::api::router(farm.clone(), token.as_deref());
     let stopping = farm.clone();
+    // Connection info gives the dashboard each worker's address.
+    let app = app.into_make_service_with_connect_info::<SocketAddr>();
     let result = axum::serve(listener, app)
         .with_graceful_shutdown(async move {
             shutdown.await;

@@ -16,6 +16,11 @@
 //! | `POST /jobs/{id}/retry` | 200 [`JobInfo`] (failed tiles requeued); 404; 409 not failed |
 //! | `GET /jobs/{id}/image` | 200 `image/png` (partial while running); 404 |
 //! | `GET /jobs/{id}/bundle` | 200 [`Bundle`]; 404 |
+//! | `GET /jobs/{id}/tiles` | 200 `Vec<TileInfo>`, by tile index; 404 |
+//! | `GET /jobs/{id}/camera` | 200 [`JobCamera`]: where the job looks from; 404 |
+//! | `POST /jobs/{id}/resubmit` (optional [`JobSpec`]) | 201 [`JobInfo`] of a new job of the same scene; 400; 404 |
+//! | `GET /workers` | 200 `Vec<WorkerInfo>`, by name |
+//! | `GET /events` | 200 `text/event-stream`: [`EVENT_JOB`], [`EVENT_TILE`], [`EVENT_WORKERS`], [`EVENT_RESYNC`] |
 //! | `GET /blobs/{hash}` | 200 bytes; 404 |
 //! | `POST /blobs/missing` | 200 `Vec<String>`: those of the given hashes the coordinator lacks |
 //! | `POST /leases` ([`LeaseRequest`]) | 200 [`Lease`]; 204 nothing to do within `wait_ms` |
@@ -137,6 +142,88 @@ pub struct JobInfo {
     /// Unix milliseconds.
     pub created_ms: u64,
 }
+
+/// A tile's state on a job's tile map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TileState {
+    /// Waiting for a worker.
+    Queued,
+    /// Some worker holds a lease on it (two while a straggler copy runs).
+    Leased,
+    Done,
+    /// It failed at least once and is not leased now: it waits for a retry, or failed its job.
+    Failed,
+    /// Not done and never will be: its job was cancelled or failed.
+    Idle,
+}
+
+/// One tile of a job, as `GET /jobs/{id}/tiles` and the `tile` event report it.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TileInfo {
+    pub job_id: u64,
+    pub tile: u32,
+    pub rect: TileRect,
+    pub state: TileState,
+    /// The workers holding a lease on it right now.
+    pub workers: Vec<String>,
+    /// Failed attempts so far.
+    pub attempts: u32,
+}
+
+/// Where a job's camera stands: its override, or the scene's own camera. The look-at point
+/// of a scene camera is the point of its view axis nearest the origin (at least one unit
+/// ahead), the pivot a viewer orbits around.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JobCamera {
+    pub position: [f64; 3],
+    pub look_at: [f64; 3],
+    pub up: [f64; 3],
+    /// Vertical field of view in degrees (always the scene's).
+    pub fov_deg: f64,
+    /// True when the job renders the scene's camera, not an override.
+    pub from_scene: bool,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WorkerState {
+    /// Seen recently, holding no lease.
+    Idle,
+    Rendering,
+    /// Its last lease lapsed without a heartbeat, or it has not been heard from for longer
+    /// than a long poll plus a lease timeout.
+    Lost,
+}
+
+/// The lease a worker holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WorkerLease {
+    pub job_id: u64,
+    pub tile: u32,
+}
+
+/// One worker as the coordinator knows it (since the coordinator started).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorkerInfo {
+    pub name: String,
+    /// The address its last lease request came from.
+    pub address: Option<String>,
+    pub state: WorkerState,
+    pub lease: Option<WorkerLease>,
+    /// Tiles it finished (first result) since the coordinator started.
+    pub tiles_done: u64,
+    /// Unix milliseconds of its last lease request or heartbeat.
+    pub last_seen_ms: u64,
+}
+
+/// `GET /events` event names. Each `data` is JSON: a [`JobInfo`] (a job was submitted or
+/// changed), a [`TileInfo`] (a tile changed state), every [`WorkerInfo`] (every two seconds),
+/// or `null` (events were dropped for a slow reader: fetch everything again).
+pub const EVENT_JOB: &str = "job";
+pub const EVENT_TILE: &str = "tile";
+pub const EVENT_WORKERS: &str = "workers";
+pub const EVENT_RESYNC: &str = "resync";
 
 /// `POST /leases`: ask for a tile. Asking again while holding a lease answers the same lease.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]

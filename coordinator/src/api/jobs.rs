@@ -15,8 +15,8 @@ use futures_util::StreamExt;
 use tracer_core::scene::SceneDescription;
 use tracer_core::{MemoryAssets, Scene, SceneError};
 use worker::protocol::{
-    check_bundle_path, ApiError, Bundle, BundleFile, JobInfo, JobSpec, CONTENT_TYPE_BLOB_REF,
-    PART_JOB, PART_SCENE,
+    check_bundle_path, ApiError, Bundle, BundleFile, JobCamera, JobInfo, JobSpec, TileInfo,
+    CONTENT_TYPE_BLOB_REF, PART_JOB, PART_SCENE,
 };
 
 use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
@@ -281,9 +281,113 @@ pub async fn image(State(app): AppState, Path(id): Path<String>) -> ApiResult<Re
     Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
 }
 
+pub async fn tiles(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<Vec<TileInfo>>> {
+    Ok(Json(app.farm.tiles(parse_id("job", &id)?)?))
+}
+
+/// Where the job looks from: its camera override, or the scene's camera read from its file.
+pub async fn camera(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<JobCamera>> {
+    let id = parse_id("job", &id)?;
+    let farm = app.farm.clone();
+    let info = farm.job(id)?;
+    let bundle = farm.bundle(id)?;
+    let camera = blocking(move || {
+        let text = farm.files().blob(&bundle.scene_hash)?.ok_or_else(|| {
+            Failure::not_found(format!(
+                "the scene file of job {id} is missing from the store"
+            ))
+        })?;
+        let text = String::from_utf8_lossy(&text);
+        let desc =
+            SceneDescription::parse(&text, &bundle.scene_file).map_err(|e| scene_error(&e))?;
+        Ok(job_camera(&desc, &info.spec))
+    })
+    .await?;
+    Ok(Json(camera))
+}
+
+fn job_camera(desc: &SceneDescription, spec: &JobSpec) -> JobCamera {
+    let cam = &desc.camera;
+    let fov_deg = cam.fov.to_degrees();
+    if let Some(o) = &spec.render.camera {
+        return JobCamera {
+            position: o.position,
+            look_at: o.look_at,
+            up: o.up,
+            fov_deg,
+            from_scene: false,
+        };
+    }
+    let forward = cam.orientation * glam::DVec3::NEG_Z;
+    let up = cam.orientation * glam::DVec3::Y;
+    // The pivot: the point of the view axis nearest the origin, where course scenes sit.
+    let distance = (-cam.position).dot(forward).max(1.0);
+    JobCamera {
+        position: cam.position.to_array(),
+        look_at: (cam.position + forward * distance).to_array(),
+        up: up.to_array(),
+        fov_deg,
+        from_scene: true,
+    }
+}
+
+/// A new job of an existing job's scene and assets (nothing is uploaded again), with the
+/// given settings or, for an empty body, the same ones.
+pub async fn resubmit(
+    State(app): AppState,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> ApiResult<Response> {
+    let id = parse_id("job", &id)?;
+    let farm = app.farm.clone();
+    let original = farm.job(id)?;
+    let spec: JobSpec = if body.iter().all(u8::is_ascii_whitespace) {
+        original.spec.clone()
+    } else {
+        parse_json(&body)?
+    };
+    farm.config()
+        .limits
+        .check(&spec)
+        .map_err(Failure::bad_request)?;
+    let bundle = farm.bundle(id)?;
+    let info = farm.submit(NewJob {
+        name: spec.name.clone().unwrap_or(original.name),
+        scene_file: bundle.scene_file,
+        scene_hash: bundle.scene_hash,
+        spec,
+        assets: bundle.assets,
+    })?;
+    farm.metrics.jobs_submitted.fetch_add(1, Ordering::Relaxed);
+    Ok((StatusCode::CREATED, Json(info)).into_response())
+}
+
 #[cfg(test)]
 mod tests {
-    use super::scene_file_name;
+    use super::*;
+
+    #[test]
+    fn a_scene_camera_pivots_on_its_view_axis_and_an_override_wins() {
+        let text = r#"<scene><camera><fov v="0.9"/><near_clip v="0.1"/><far_clip v="100"/>
+            <position x="0" y="0" z="10"/><orientation a="0" x="0" y="1" z="0"/>
+            </camera></scene>"#;
+        let desc = SceneDescription::parse(text, "t.scene").unwrap();
+        let mut spec = JobSpec::default();
+        let cam = job_camera(&desc, &spec);
+        assert!(cam.from_scene);
+        assert_eq!(cam.position, [0.0, 0.0, 10.0]);
+        assert!((cam.look_at[2]).abs() < 1e-12, "{cam:?}");
+        assert!((cam.up[1] - 1.0).abs() < 1e-12);
+        assert!((cam.fov_deg - 0.9f64.to_degrees()).abs() < 1e-9);
+        spec.render.camera = Some(tracer_core::CameraOverride {
+            position: [1.0, 2.0, 3.0],
+            look_at: [0.0; 3],
+            up: [0.0, 1.0, 0.0],
+        });
+        let cam = job_camera(&desc, &spec);
+        assert!(!cam.from_scene);
+        assert_eq!(cam.position, [1.0, 2.0, 3.0]);
+    }
 
     #[test]
     fn scene_names_lose_their_folders() {

@@ -1,12 +1,13 @@
 //! `/leases`: the worker side. Lease requests long-poll; every other call names a lease id
 //! and gets 409 when that lease is no longer live.
 
+use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
-use axum::extract::{Path, State};
-use axum::http::StatusCode;
+use axum::extract::{ConnectInfo, Path, State};
+use axum::http::{Extensions, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use worker::protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
@@ -29,12 +30,21 @@ fn counted<T>(app: &super::App, result: Result<T, FarmError>) -> ApiResult<T> {
 /// with a notification).
 const STRAGGLER_RECHECK: Duration = Duration::from_secs(1);
 
-pub async fn lease(State(app): AppState, body: Bytes) -> ApiResult<Response> {
+pub async fn lease(
+    State(app): AppState,
+    extensions: Extensions,
+    body: Bytes,
+) -> ApiResult<Response> {
     let req: LeaseRequest = parse_json(&body)?;
     if req.worker.is_empty() || req.worker.len() > 200 {
         return Err(Failure::bad_request("a worker name is 1 to 200 bytes"));
     }
     let farm = &app.farm;
+    // Present when the server was started with connection info (it always is but in tests
+    // that build the router alone).
+    if let Some(ConnectInfo(peer)) = extensions.get::<ConnectInfo<SocketAddr>>() {
+        farm.worker_address(&req.worker, peer.to_string());
+    }
     let start = Instant::now();
     let wait = Duration::from_millis(req.wait_ms).min(farm.config().max_poll_wait);
     let deadline = start + wait;

@@ -2,6 +2,8 @@
 //! mapping from farm errors to status codes with JSON bodies.
 
 mod blobs;
+mod dashboard;
+mod events;
 mod jobs;
 mod leases;
 
@@ -145,12 +147,17 @@ async fn metrics(State(app): AppState) -> Response {
         .into_response()
 }
 
+async fn workers(State(app): AppState) -> Json<Vec<worker::protocol::WorkerInfo>> {
+    Json(app.farm.workers())
+}
+
 async fn not_found() -> Failure {
     Failure::not_found("no such route; see docs/api.md")
 }
 
-/// The whole API. `/healthz` answers without a token (liveness probes carry none and it
-/// reveals nothing); every other route needs it when one is set.
+/// The whole API. `/healthz` and the dashboard's static files answer without a token
+/// (liveness probes carry none, the page asks for it, and neither reveals anything); every
+/// other route needs it when one is set.
 pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
     let limit = farm.config().limits.max_upload_bytes;
     let app = Arc::new(App {
@@ -169,6 +176,11 @@ pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
         .route("/jobs/{id}/retry", post(jobs::retry))
         .route("/jobs/{id}/image", get(jobs::image))
         .route("/jobs/{id}/bundle", get(jobs::bundle))
+        .route("/jobs/{id}/tiles", get(jobs::tiles))
+        .route("/jobs/{id}/camera", get(jobs::camera))
+        .route("/jobs/{id}/resubmit", post(jobs::resubmit))
+        .route("/workers", get(workers))
+        .route("/events", get(events::stream))
         .route("/blobs/missing", post(blobs::missing))
         .route("/blobs/{hash}", get(blobs::show))
         .route("/leases", post(leases::lease))
@@ -182,6 +194,7 @@ pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
         .route_layer(middleware::from_fn_with_state(app.clone(), authenticate));
     Router::new()
         .route("/healthz", get(healthz))
+        .merge(dashboard::routes())
         .merge(guarded)
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(limit))

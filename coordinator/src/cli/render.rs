@@ -57,6 +57,12 @@ fn render(args: RenderArgs) -> Result<(), String> {
     let runtime = super::runtime()?;
     runtime.block_on(async move {
         let farm = EmbeddedFarm::start(args.data_dir.clone(), workers, threads).await?;
+        // The fragment hands the page the token without sending it anywhere.
+        eprintln!(
+            "dashboard (while it renders): {}/#token={}",
+            farm.url(),
+            farm.token()
+        );
         let result = submit_and_wait(&farm, &submission, &output, start).await;
         farm.shutdown().await;
         result

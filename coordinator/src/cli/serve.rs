@@ -139,8 +139,9 @@ pub fn run(args: ServeArgs) -> ExitCode {
             .local_addr()
             .map(|a| a.to_string())
             .unwrap_or_default();
-        // Scripts and tests read the address (port 0 picks one) from this line.
+        // Scripts and tests read the address (port 0 picks one) from the first line.
         println!("listening on http://{local}");
+        println!("dashboard: http://{local}/");
         tracing::info!(
             "coordinator {} on http://{local}, data in {}{}",
             env!("CARGO_PKG_VERSION"),

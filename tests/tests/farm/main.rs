@@ -5,6 +5,8 @@
 mod helpers;
 
 mod api;
+mod dashboard;
+mod dashboard_api;
 mod deploy;
 mod e2e;
 mod faults;
