@@ -14,6 +14,7 @@ const state = {
   workers: [],
   selected: null, // job id
   tiles: [], // the selected job's TileInfo, by tile index
+  frame: null, // the frame shown, for a frame-range job
   camera: null, // {position, look_at, up}: where the viewpoint controls have moved to
   sceneCamera: null, // the selected job's camera, as the coordinator reported it
   stream: null, // AbortController of the event stream
@@ -172,9 +173,10 @@ function isActive(job) {
   return job.state === 'queued' || job.state === 'running';
 }
 
-// A job's name, with its frame when it is one frame of an animation.
+// A job's name, with its frames when it renders a range of an animation.
 function jobTitle(job) {
-  return job.frame != null ? `${job.name} · frame ${job.frame}` : job.name;
+  const range = job.spec.frames;
+  return range ? `${job.name} · frames ${range.first}–${range.last}` : job.name;
 }
 
 // ---------------------------------------------------------------- jobs
@@ -315,6 +317,17 @@ function select(id) {
   $('job-error').textContent = job.error || '';
   $('tile-detail').textContent = '';
   $('tile-map').replaceChildren();
+  const range = job.spec.frames;
+  state.frame = range ? range.first : null;
+  $('frame-picker').hidden = !range;
+  if (range) {
+    const options = [];
+    for (let f = range.first; f <= range.last; f++) {
+      options.push(el('option', { value: f, textContent: f }));
+    }
+    $('frame-select').replaceChildren(...options);
+    $('frame-select').value = String(range.first);
+  }
   loadTiles(id);
   refreshPreview();
   loadCamera(id);
@@ -329,6 +342,7 @@ async function loadTiles(id) {
     const { width, height } = job.spec.render;
     $('tile-map').replaceChildren(
       ...tiles.map((t) => {
+        // A frame-range job holds every frame's tiles: the map shows the frame in view.
         const div = el('div', { id: 'tile-' + t.tile });
         Object.assign(div.style, {
           left: (100 * t.rect.x) / width + '%',
@@ -336,6 +350,7 @@ async function loadTiles(id) {
           width: (100 * t.rect.width) / width + '%',
           height: (100 * t.rect.height) / height + '%',
         });
+        div.hidden = state.frame != null && t.frame !== state.frame;
         div.addEventListener('mouseenter', () => {
           $('tile-detail').textContent = tileText(state.tiles[t.tile]);
         });
@@ -361,8 +376,23 @@ function paintTile(div, t) {
   div.title = tileText(t);
 }
 
+// Shows frame `f` of the selected frame-range job: its tiles on the map, its preview.
+function showFrame(f) {
+  if (state.frame === f) return;
+  state.frame = f;
+  $('frame-select').value = String(f);
+  for (const t of state.tiles) {
+    const div = t && $('tile-' + t.tile);
+    if (div) div.hidden = t.frame !== f;
+  }
+  refreshPreview();
+}
+
 function onTile(t) {
   if (t.job_id !== state.selected) return;
+  if (state.frame != null && t.frame !== state.frame && $('follow-frame').checked) {
+    showFrame(t.frame);
+  }
   state.tiles[t.tile] = t;
   const div = $('tile-' + t.tile);
   if (div) paintTile(div, t);
@@ -382,7 +412,8 @@ async function refreshPreview() {
   try {
     // Asked for once the job is done, the image is the final PNG.
     const final = state.jobs.get(id).state === 'done';
-    const blob = await (await api(`/jobs/${id}/image`)).blob();
+    const frame = state.frame != null ? `?frame=${state.frame}` : '';
+    const blob = await (await api(`/jobs/${id}/image${frame}`)).blob();
     if (state.selected === id) {
       const img = $('preview');
       const old = preview.url;
@@ -618,6 +649,23 @@ function init() {
   $('scene-files').addEventListener('change', listScenes);
   $('scene-folder').addEventListener('change', listScenes);
   $('submit-form').addEventListener('submit', submitScene);
+  $('frame-select').addEventListener('change', (ev) => {
+    $('follow-frame').checked = false;
+    showFrame(Number(ev.target.value));
+  });
+  $('frames-download').addEventListener('click', async (ev) => {
+    ev.preventDefault();
+    const id = state.selected;
+    if (id == null) return;
+    try {
+      const blob = await (await api(`/jobs/${id}/frames.tar`)).blob();
+      const link = el('a', { href: URL.createObjectURL(blob), download: `job-${id}-frames.tar` });
+      link.click();
+      setTimeout(() => URL.revokeObjectURL(link.href), 10000);
+    } catch (e) {
+      if (!(e instanceof Unauthorized)) $('job-error').textContent = 'frames: ' + e.message;
+    }
+  });
   $('show-tiles').addEventListener('change', (ev) => {
     $('tile-map').classList.toggle('hidden', !ev.target.checked);
   });

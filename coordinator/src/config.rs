@@ -17,6 +17,8 @@ pub struct Limits {
     pub max_depth: u32,
     pub min_tile_size: u32,
     pub max_tile_size: u32,
+    /// Frames in one frame-range job.
+    pub max_frames: u32,
 }
 
 impl Default for Limits {
@@ -29,6 +31,7 @@ impl Default for Limits {
             max_depth: 64,
             min_tile_size: 4,
             max_tile_size: 1024,
+            max_frames: 10_000,
         }
     }
 }
@@ -67,6 +70,14 @@ impl Limits {
                 "tile_size {} must be between {} and {}",
                 spec.tile_size, self.min_tile_size, self.max_tile_size
             ));
+        }
+        if let Some(range) = spec.frames {
+            if range.is_empty() || range.len() > self.max_frames {
+                return Err(format!(
+                    "frames {}..{} must hold between 1 and {} frames",
+                    range.first, range.last, self.max_frames
+                ));
+            }
         }
         if let Some(name) = &spec.name {
             if name.len() > 200 {

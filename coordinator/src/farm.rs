@@ -18,7 +18,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use tokio::sync::broadcast;
 use tokio::sync::Notify;
-use tracer_core::TileRect;
+use tracer_core::{RenderSettings, TileRect};
 use worker::protocol::{
     ApiError, Bundle, BundleFile, Completion, FailureReport, JobInfo, JobSpec, JobState, Lease,
     LeaseStatus, TileFailure, TileInfo, TileState, WorkerInfo, WorkerLease, WorkerState,
@@ -59,6 +59,8 @@ pub struct NewJob {
 
 #[derive(Debug)]
 struct Tile {
+    /// The frame this tile belongs to: a frame-range job holds every frame's tiles in turn.
+    frame: u32,
     rect: TileRect,
     done: bool,
     /// Live leases on this tile (two while a straggler copy runs).
@@ -100,9 +102,13 @@ impl Job {
             stored.spec.render.height,
             stored.spec.tile_size,
         );
-        let mut tiles: Vec<Tile> = rects
+        let mut tiles: Vec<Tile> = stored
+            .spec
+            .frame_list()
             .into_iter()
-            .map(|rect| Tile {
+            .flat_map(|frame| rects.iter().map(move |&rect| (frame, rect)))
+            .map(|(frame, rect)| Tile {
+                frame,
                 rect,
                 done: false,
                 leases: Vec::new(),
@@ -196,6 +202,12 @@ impl Job {
     }
 }
 
+/// Where a finished job's PNG of one frame is stored.
+enum StoredImage {
+    Job,
+    Frame(u32),
+}
+
 /// What changed, for `GET /events`: readers look the current state up, so a burst of changes
 /// to one job costs one message.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
@@ -266,6 +278,7 @@ impl State {
         TileInfo {
             job_id: job.id,
             tile,
+            frame: t.frame,
             rect: t.rect,
             state,
             workers: t
@@ -644,7 +657,10 @@ impl Farm {
             job_id: lease.job_id,
             tile: lease.tile,
             rect: job.tiles[lease.tile as usize].rect,
-            settings: job.spec.render.clone(),
+            settings: RenderSettings {
+                frame: job.tiles[lease.tile as usize].frame,
+                ..job.spec.render.clone()
+            },
             expires_in_ms: lease.deadline_ms.saturating_sub(now),
             heartbeat_ms: self.config.heartbeat.as_millis() as u64,
         }
@@ -795,19 +811,42 @@ impl Farm {
     }
 
     fn write_image(&self, job_id: u64) -> Result<()> {
-        let (width, height, tiles) = {
+        let (width, height, frames, tiles) = {
             let state = self.lock();
             let job = state.job(job_id)?;
-            let tiles: Vec<(u32, TileRect)> = job
+            let tiles: Vec<(u32, u32, TileRect)> = job
                 .tiles
                 .iter()
                 .enumerate()
-                .map(|(i, t)| (i as u32, t.rect))
+                .map(|(i, t)| (t.frame, i as u32, t.rect))
                 .collect();
-            (job.spec.render.width, job.spec.render.height, tiles)
+            (
+                job.spec.render.width,
+                job.spec.render.height,
+                job.spec.frames.is_some(),
+                tiles,
+            )
         };
-        let image = self.files.assemble(job_id, width, height, &tiles)?;
-        self.files.put_image(job_id, &image.to_png())?;
+        let frame_list: BTreeSet<u32> = tiles.iter().map(|t| t.0).collect();
+        let mut first = None;
+        for &frame in &frame_list {
+            let of_frame: Vec<(u32, TileRect)> = tiles
+                .iter()
+                .filter(|t| t.0 == frame)
+                .map(|t| (t.1, t.2))
+                .collect();
+            let png = self
+                .files
+                .assemble(job_id, width, height, &of_frame)?
+                .to_png();
+            if frames {
+                self.files.put_frame_image(job_id, frame, &png)?;
+            }
+            first.get_or_insert(png);
+        }
+        // The job's image is its (first) frame, so single-image clients keep working. Last,
+        // because storing it drops the tiles.
+        self.files.put_image(job_id, &first.unwrap_or_default())?;
         Ok(())
     }
 
@@ -1103,32 +1142,77 @@ impl Farm {
         list
     }
 
-    /// The job's PNG: the stored final image, or one assembled from the finished tiles with
-    /// the rest black. Blocking.
-    pub fn image(&self, job_id: u64) -> Result<Vec<u8>> {
-        let (width, height, tiles, state) = {
+    /// The PNG of one frame of the job (its first frame when `frame` is None): the stored
+    /// final image, or one assembled from the frame's finished tiles with the rest black.
+    /// Blocking.
+    pub fn image(&self, job_id: u64, frame: Option<u32>) -> Result<Vec<u8>> {
+        let (width, height, tiles, state, stored) = {
             let state = self.lock();
             let job = state.job(job_id)?;
+            let frames = job.spec.frame_list();
+            let frame = match frame {
+                None => frames[0],
+                Some(f) if frames.contains(&f) => f,
+                Some(f) => {
+                    return Err(FarmError::NotFound(format!(
+                        "job {job_id} has no frame {f} (it renders {})",
+                        match job.spec.frames {
+                            Some(r) => format!("frames {}..{}", r.first, r.last),
+                            None => format!("frame {}", frames[0]),
+                        }
+                    )))
+                }
+            };
             let tiles: Vec<(u32, TileRect)> = job
                 .tiles
                 .iter()
                 .enumerate()
-                .filter(|(_, t)| t.done)
+                .filter(|(_, t)| t.done && t.frame == frame)
                 .map(|(i, t)| (i as u32, t.rect))
                 .collect();
+            // Only frame-range jobs store a PNG per frame; the job image is the first frame.
+            let stored = if job.spec.frames.is_some() {
+                StoredImage::Frame(frame)
+            } else {
+                StoredImage::Job
+            };
             (
                 job.spec.render.width,
                 job.spec.render.height,
                 tiles,
                 job.state,
+                stored,
             )
         };
         if state == JobState::Done {
-            if let Some(png) = self.files.image(job_id)? {
+            let png = match stored {
+                StoredImage::Job => self.files.image(job_id)?,
+                StoredImage::Frame(f) => self.files.frame_image(job_id, f)?,
+            };
+            if let Some(png) = png {
                 return Ok(png);
             }
         }
         Ok(self.files.assemble(job_id, width, height, &tiles)?.to_png())
+    }
+
+    /// Every frame's PNG of a finished job, in frame order, as (frame, bytes). Blocking.
+    pub fn frame_images(&self, job_id: u64) -> Result<Vec<(u32, Vec<u8>)>> {
+        let (frames, state) = {
+            let state = self.lock();
+            let job = state.job(job_id)?;
+            (job.spec.frame_list(), job.state)
+        };
+        if state != JobState::Done {
+            return Err(FarmError::Conflict(format!(
+                "job {job_id} is {}: its frames are ready once it is done",
+                state.as_str()
+            )));
+        }
+        frames
+            .into_iter()
+            .map(|f| Ok((f, self.image(job_id, Some(f))?)))
+            .collect()
     }
 
     /// Prometheus text: counters plus gauges computed from the current state.
@@ -1326,6 +1410,48 @@ mod tests {
     }
 
     #[test]
+    fn a_frame_range_job_tiles_every_frame_and_assembles_each_on_its_own() {
+        let f = fixture(FarmConfig::default());
+        let mut new = new_job("anim");
+        new.spec.frames = Some(tracer_core::FrameRange::new(3, 5).unwrap());
+        let job = f.farm.submit(new).unwrap();
+        assert_eq!(job.tiles_total, 3 * 4);
+        assert!(matches!(
+            f.farm.frame_images(job.id),
+            Err(FarmError::Conflict(_))
+        ));
+        let mut last = None;
+        for i in 0..12 {
+            let lease = f.farm.lease(&format!("w{i}")).unwrap().unwrap();
+            // Tiles go frame by frame, and the lease tells the worker which frame.
+            let frame = 3 + lease.tile / 4;
+            assert_eq!(lease.settings.frame, frame);
+            let tiles = f.farm.tiles(job.id).unwrap();
+            assert_eq!(tiles[lease.tile as usize].frame, frame);
+            let done = f
+                .farm
+                .complete(lease.lease_id, &blank(lease.rect, frame as f32 / 10.0))
+                .unwrap();
+            last = done.1;
+        }
+        assert_eq!(last, Some(job.id));
+        f.farm.assemble(job.id).unwrap();
+        let frames = f.farm.frame_images(job.id).unwrap();
+        assert_eq!(frames.iter().map(|(n, _)| *n).collect::<Vec<_>>(), [3, 4, 5]);
+        for (frame, png) in &frames {
+            let image = tracer_core::Image::from_png_bytes(png).unwrap();
+            let expected = (*frame as f32 / 10.0 * 255.0 + 1e-4).floor() / 255.0;
+            assert_eq!(image.pixel(9, 9), [expected; 3], "frame {frame}");
+        }
+        assert_eq!(f.farm.image(job.id, None).unwrap(), frames[0].1);
+        assert_eq!(f.farm.image(job.id, Some(5)).unwrap(), frames[2].1);
+        assert!(matches!(
+            f.farm.image(job.id, Some(6)),
+            Err(FarmError::NotFound(_))
+        ));
+    }
+
+    #[test]
     fn a_job_whose_image_cannot_be_built_fails_instead_of_running_forever() {
         let f = fixture(FarmConfig::default());
         let job = f.farm.submit(new_job("a")).unwrap();
@@ -1369,7 +1495,7 @@ mod tests {
         f.farm.assemble(job.id).unwrap();
         let info = f.farm.job(job.id).unwrap();
         assert_eq!((info.state, info.tiles_done), (JobState::Done, 4));
-        let png = f.farm.image(job.id).unwrap();
+        let png = f.farm.image(job.id, None).unwrap();
         let image = tracer_core::Image::from_png_bytes(&png).unwrap();
         assert_eq!(image.pixel(0, 0), [0.0; 3]);
         assert_eq!(image.pixel(15, 15), [191.0 / 255.0; 3]);
@@ -1575,7 +1701,7 @@ mod tests {
         drop(farm);
         let farm = Farm::open(dir.path(), FarmConfig::default(), clock).unwrap();
         assert_eq!(farm.job(job.id).unwrap().state, JobState::Done);
-        assert!(!farm.image(job.id).unwrap().is_empty());
+        assert!(!farm.image(job.id, None).unwrap().is_empty());
     }
 
     #[test]

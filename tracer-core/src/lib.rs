@@ -30,4 +30,4 @@ pub mod world;
 pub use film::Image;
 pub use render::Renderer;
 pub use scene::{AssetSource, FsAssets, MemoryAssets, Scene, SceneError};
-pub use settings::{CameraOverride, RenderSettings, TextureFilter, TileRect};
+pub use settings::{CameraOverride, FrameRange, RenderSettings, TextureFilter, TileRect};

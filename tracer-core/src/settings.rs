@@ -1,5 +1,8 @@
 //! Render settings and tile rectangles: the plain data a farm job carries.
 
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
 use serde::{Deserialize, Serialize};
 
 /// How textures are sampled between texels.
@@ -135,6 +138,102 @@ impl TileRect {
     }
 }
 
+/// An inclusive range of frames of an animated scene, written `A..B` on command lines.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FrameRange {
+    pub first: u32,
+    pub last: u32,
+}
+
+impl FrameRange {
+    /// A range from `first` through `last`; empty ranges are refused.
+    pub fn new(first: u32, last: u32) -> Result<Self, String> {
+        if first > last {
+            return Err(format!("the frame range {first}..{last} is empty"));
+        }
+        Ok(Self { first, last })
+    }
+
+    /// How many frames the range holds (at least one once validated).
+    pub fn len(&self) -> u32 {
+        self.last.saturating_sub(self.first).saturating_add(1)
+    }
+
+    /// Never true for a range made by [`FrameRange::new`]; a deserialised one is checked with
+    /// [`FrameRange::validate`].
+    pub fn is_empty(&self) -> bool {
+        self.first > self.last
+    }
+
+    pub fn frames(&self) -> std::ops::RangeInclusive<u32> {
+        self.first..=self.last
+    }
+
+    /// Checks the range against a scene with `frame_count` frames.
+    pub fn validate(&self, frame_count: u32) -> Result<(), String> {
+        if self.is_empty() {
+            return Err(format!(
+                "the frame range {}..{} is empty",
+                self.first, self.last
+            ));
+        }
+        if self.last >= frame_count {
+            return Err(format!(
+                "frames {}..{}: the scene has {frame_count} frame(s), numbered from 0",
+                self.first, self.last
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl FromStr for FrameRange {
+    type Err = String;
+
+    /// `A..B`, inclusive.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (a, b) = s
+            .split_once("..")
+            .ok_or_else(|| format!("expected A..B, got '{s}'"))?;
+        let num = |t: &str| {
+            t.trim()
+                .parse::<u32>()
+                .map_err(|_| format!("'{t}' is not a frame number"))
+        };
+        FrameRange::new(num(a)?, num(b)?)
+    }
+}
+
+/// Where frame `frame` of a sequence goes: `out.png` → `out_0003.png`.
+pub fn numbered_path(output: &Path, frame: u32) -> PathBuf {
+    let stem = output
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let name = match output.extension() {
+        Some(ext) => format!("{stem}_{frame:04}.{}", ext.to_string_lossy()),
+        None => format!("{stem}_{frame:04}"),
+    };
+    output.with_file_name(name)
+}
+
+/// `x,y,z` as three finite numbers (command-line vectors).
+pub fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, z] = parts.as_slice() else {
+        return Err(format!("expected x,y,z, got '{s}'"));
+    };
+    let mut v = [0.0; 3];
+    for (slot, part) in v.iter_mut().zip([x, y, z]) {
+        *slot = part
+            .parse::<f64>()
+            .ok()
+            .filter(|n| n.is_finite())
+            .ok_or_else(|| format!("'{part}' is not a finite number"))?;
+    }
+    Ok(v)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -160,5 +259,26 @@ mod tests {
             ..Default::default()
         };
         assert!(zero.validate().is_err());
+    }
+
+    #[test]
+    fn frame_ranges_parse_validate_and_number_paths() {
+        let r: FrameRange = "2..5".parse().unwrap();
+        assert_eq!((r.first, r.last, r.len()), (2, 5, 4));
+        assert_eq!(r.frames().collect::<Vec<_>>(), [2, 3, 4, 5]);
+        assert!("5..2".parse::<FrameRange>().is_err());
+        assert!("5".parse::<FrameRange>().is_err());
+        assert!("a..2".parse::<FrameRange>().is_err());
+        assert!(r.validate(6).is_ok());
+        assert!(r.validate(5).unwrap_err().contains("5 frame(s)"));
+        assert!(FrameRange { first: 3, last: 1 }.validate(9).is_err());
+        assert_eq!(
+            numbered_path(Path::new("out/a.png"), 3),
+            Path::new("out/a_0003.png")
+        );
+        assert_eq!(numbered_path(Path::new("a"), 12), Path::new("a_0012"));
+        assert_eq!(parse_vec3(" 1, -2,3e1").unwrap(), [1.0, -2.0, 30.0]);
+        assert!(parse_vec3("1,2").is_err());
+        assert!(parse_vec3("1,nan,2").is_err());
     }
 }

@@ -276,12 +276,18 @@ impl Client {
         Self::json(self.request(Method::DELETE, &format!("/jobs/{id}"))).await
     }
 
-    /// The job's PNG: final when it is done, partial while it runs.
+    /// The job's PNG (its first frame): final when it is done, partial while it runs.
     pub async fn image(&self, id: u64) -> Result<Vec<u8>> {
-        let resp = self
-            .request(Method::GET, &format!("/jobs/{id}/image"))
-            .send()
-            .await?;
+        self.bytes(&format!("/jobs/{id}/image")).await
+    }
+
+    /// One frame of a frame-range job, final or partial like [`Client::image`].
+    pub async fn frame_image(&self, id: u64, frame: u32) -> Result<Vec<u8>> {
+        self.bytes(&format!("/jobs/{id}/image?frame={frame}")).await
+    }
+
+    async fn bytes(&self, path: &str) -> Result<Vec<u8>> {
+        let resp = self.request(Method::GET, path).send().await?;
         Ok(Self::check(resp).await?.bytes().await?.to_vec())
     }
 }

@@ -32,7 +32,7 @@
 //! Any route answers 401 without the right bearer token when the coordinator has one.
 
 use serde::{Deserialize, Serialize};
-use tracer_core::{RenderSettings, TileRect};
+use tracer_core::{FrameRange, RenderSettings, TileRect};
 
 /// Every JSON route sits under this prefix.
 pub const API_PREFIX: &str = "/api/v1";
@@ -55,8 +55,21 @@ pub struct JobSpec {
     /// A label for listings; defaults to the scene's file name.
     pub name: Option<String>,
     pub render: RenderSettings,
+    /// Render these frames of an animated scene as one job (`render.frame` is then ignored):
+    /// every frame is split into tiles, and each frame's PNG is assembled on its own.
+    pub frames: Option<FrameRange>,
     /// Tiles are at most `tile_size`×`tile_size` pixels.
     pub tile_size: u32,
+}
+
+impl JobSpec {
+    /// The frames the job renders, in order.
+    pub fn frame_list(&self) -> Vec<u32> {
+        match self.frames {
+            Some(range) => range.frames().collect(),
+            None => vec![self.render.frame],
+        }
+    }
 }
 
 impl Default for JobSpec {
@@ -64,6 +77,7 @@ impl Default for JobSpec {
         Self {
             name: None,
             render: RenderSettings::default(),
+            frames: None,
             tile_size: DEFAULT_TILE_SIZE,
         }
     }
@@ -163,6 +177,8 @@ pub enum TileState {
 pub struct TileInfo {
     pub job_id: u64,
     pub tile: u32,
+    /// The frame the tile belongs to (0 for a still).
+    pub frame: u32,
     pub rect: TileRect,
     pub state: TileState,
     /// The workers holding a lease on it right now.

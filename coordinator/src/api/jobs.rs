@@ -1,5 +1,5 @@
 //! `/jobs`: submit (multipart, validated with tracer-core before it is accepted), list, show,
-//! cancel, retry, image and bundle.
+//! cancel, retry, image (one frame, or every frame as a tar) and bundle.
 
 use std::collections::HashMap;
 
@@ -7,11 +7,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use axum::body::{Body, Bytes};
-use axum::extract::{FromRequest, Multipart, Path, Request, State};
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{FromRequest, Multipart, Path, Query, Request, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use futures_util::StreamExt;
+use serde::Deserialize;
 use tracer_core::scene::SceneDescription;
 use tracer_core::{MemoryAssets, Scene, SceneError};
 use worker::protocol::{
@@ -230,7 +232,8 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
         // Load the scene as a worker would, so a broken mesh or texture is refused now
         // rather than failing on every worker.
         let (scene_text, scene_name) = (text, scene_file);
-        Scene::build(&desc, &scene_name, &assets).map_err(|e| scene_error(&e))?;
+        let scene = Scene::build(&desc, &scene_name, &assets).map_err(|e| scene_error(&e))?;
+        check_frames(&spec, scene.frame_count()).map_err(Failure::bad_request)?;
         let files = farm.files();
         let scene_hash = files.put_blob(scene_text.as_bytes())?;
         let mut bundle = Vec::new();
@@ -274,11 +277,90 @@ pub async fn bundle(State(app): AppState, Path(id): Path<String>) -> ApiResult<J
     Ok(Json(app.farm.bundle(parse_id("job", &id)?)?))
 }
 
-pub async fn image(State(app): AppState, Path(id): Path<String>) -> ApiResult<Response> {
+/// The frames a job asks for must exist in its scene.
+fn check_frames(spec: &JobSpec, frame_count: u32) -> Result<(), String> {
+    match spec.frames {
+        Some(range) => range.validate(frame_count),
+        None if spec.render.frame >= frame_count => Err(format!(
+            "frame {} is out of range: the scene has {frame_count} frame(s), numbered from 0",
+            spec.render.frame
+        )),
+        None => Ok(()),
+    }
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImageQuery {
+    frame: Option<u32>,
+}
+
+pub async fn image(
+    State(app): AppState,
+    Path(id): Path<String>,
+    query: Result<Query<ImageQuery>, QueryRejection>,
+) -> ApiResult<Response> {
+    let id = parse_id("job", &id)?;
+    let Query(query) = query.map_err(|e| Failure::bad_request(e.body_text()))?;
+    let farm = app.farm.clone();
+    let png = blocking(move || Ok(farm.image(id, query.frame)?)).await?;
+    Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
+}
+
+/// Every frame of a finished job as a tar of numbered PNGs (`<name>_0003.png`).
+pub async fn frames_tar(State(app): AppState, Path(id): Path<String>) -> ApiResult<Response> {
     let id = parse_id("job", &id)?;
     let farm = app.farm.clone();
-    let png = blocking(move || Ok(farm.image(id)?)).await?;
-    Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
+    let (name, tar) = blocking(move || {
+        let name = farm.job(id)?.name;
+        let frames = farm.frame_images(id)?;
+        let stem = archive_stem(&name);
+        let mut archive = tar::Builder::new(Vec::new());
+        for (frame, png) in frames {
+            let mut header = tar::Header::new_ustar();
+            header.set_size(png.len() as u64);
+            header.set_mode(0o644);
+            header.set_mtime(0);
+            header.set_cksum();
+            archive
+                .append_data(&mut header, format!("{stem}_{frame:04}.png"), png.as_slice())
+                .map_err(|e| Failure::internal(format!("building the archive: {e}")))?;
+        }
+        let bytes = archive
+            .into_inner()
+            .map_err(|e| Failure::internal(format!("building the archive: {e}")))?;
+        Ok((stem, bytes))
+    })
+    .await?;
+    let disposition = format!("attachment; filename=\"{name}_frames.tar\"");
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/x-tar".to_string()),
+            (header::CONTENT_DISPOSITION, disposition),
+        ],
+        tar,
+    )
+        .into_response())
+}
+
+/// A job name made safe for file names in the archive: letters, digits, `-`, `_`, `.`.
+fn archive_stem(name: &str) -> String {
+    let stem = name.strip_suffix(".scene").unwrap_or(name);
+    let safe: String = stem
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "-_.".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    if safe.trim_matches('.').is_empty() {
+        "frame".to_string()
+    } else {
+        safe
+    }
 }
 
 pub async fn tiles(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<Vec<TileInfo>>> {

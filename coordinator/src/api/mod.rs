@@ -43,6 +43,10 @@ impl Failure {
     pub fn not_found(msg: impl Into<String>) -> Self {
         Failure(StatusCode::NOT_FOUND, ApiError::new(msg))
     }
+
+    pub fn internal(msg: impl Into<String>) -> Self {
+        Failure(StatusCode::INTERNAL_SERVER_ERROR, ApiError::new(msg))
+    }
 }
 
 impl IntoResponse for Failure {
@@ -175,6 +179,7 @@ pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
         .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
         .route("/jobs/{id}/retry", post(jobs::retry))
         .route("/jobs/{id}/image", get(jobs::image))
+        .route("/jobs/{id}/frames.tar", get(jobs::frames_tar))
         .route("/jobs/{id}/bundle", get(jobs::bundle))
         .route("/jobs/{id}/tiles", get(jobs::tiles))
         .route("/jobs/{id}/camera", get(jobs::camera))

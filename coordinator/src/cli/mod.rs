@@ -10,7 +10,8 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
-use tracer_core::{CameraOverride, RenderSettings, TextureFilter};
+use tracer_core::settings::parse_vec3;
+use tracer_core::{CameraOverride, FrameRange, RenderSettings, TextureFilter};
 use worker::protocol::{JobSpec, DEFAULT_TILE_SIZE};
 
 pub use submit::collect_submission;
@@ -69,6 +70,13 @@ pub struct SettingsArgs {
     /// Bilinear texture filtering instead of nearest texel.
     #[arg(long)]
     pub bilinear: bool,
+    /// Render frames A through B (inclusive) of an animated scene as one job; the PNGs are
+    /// written with the frame number inserted: out.png → out_0003.png.
+    #[arg(long, conflicts_with = "frame")]
+    pub frames: Option<FrameRange>,
+    /// Render this frame of an animated scene (0-based) [default: 0].
+    #[arg(long)]
+    pub frame: Option<u32>,
     /// Tile edge in pixels.
     #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
     pub tile_size: u32,
@@ -103,26 +111,12 @@ impl SettingsArgs {
                 } else {
                     d.texture_filter
                 },
-                frame: d.frame,
+                frame: self.frame.unwrap_or(d.frame),
             },
+            frames: self.frames,
             tile_size: self.tile_size,
         })
     }
-}
-
-fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
-    let parts: Vec<&str> = s.split(',').collect();
-    if parts.len() != 3 {
-        return Err(format!("expected x,y,z, got {s:?}"));
-    }
-    let mut v = [0.0; 3];
-    for (slot, part) in v.iter_mut().zip(parts) {
-        *slot = part
-            .trim()
-            .parse()
-            .map_err(|_| format!("{part:?} is not a number"))?;
-    }
-    Ok(v)
 }
 
 /// Runs the parsed command line.
@@ -149,6 +143,45 @@ fn write_png(path: &Path, png: &[u8]) -> Result<(), String> {
             .map_err(|e| format!("creating {}: {e}", parent.display()))?;
     }
     std::fs::write(path, png).map_err(|e| format!("writing {}: {e}", path.display()))
+}
+
+/// Downloads a finished job's image to `output`, or each frame of a frame-range job to
+/// `output` numbered (out.png → out_0003.png). Returns the files written.
+async fn download(
+    client: &worker::Client,
+    job: &worker::protocol::JobInfo,
+    output: &Path,
+) -> Result<Vec<PathBuf>, String> {
+    let Some(range) = job.spec.frames else {
+        let png = client.image(job.id).await.map_err(|e| submit::describe(&e))?;
+        write_png(output, &png)?;
+        return Ok(vec![output.to_path_buf()]);
+    };
+    let mut written = Vec::new();
+    for frame in range.frames() {
+        let png = client
+            .frame_image(job.id, frame)
+            .await
+            .map_err(|e| submit::describe(&e))?;
+        let path = tracer_core::settings::numbered_path(output, frame);
+        write_png(&path, &png)?;
+        written.push(path);
+    }
+    Ok(written)
+}
+
+/// Names what [`download`] wrote, briefly.
+fn describe_written(written: &[PathBuf]) -> String {
+    match written {
+        [one] => one.display().to_string(),
+        [first, .., last] => format!(
+            "{} frames, {} … {}",
+            written.len(),
+            first.display(),
+            last.display()
+        ),
+        [] => "nothing".to_string(),
+    }
 }
 
 /// Where the PNG goes when `-o` is not given: the scene's name with `.png`, here.

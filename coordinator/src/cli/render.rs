@@ -99,11 +99,10 @@ async fn submit_and_wait(
     };
     match finished.state {
         JobState::Done => {
-            let png = client.image(job.id).await.map_err(|e| describe(&e))?;
-            super::write_png(output, &png)?;
+            let written = super::download(client, &finished, output).await?;
             eprintln!(
                 "wrote {} in {:.2}s",
-                output.display(),
+                super::describe_written(&written),
                 start.elapsed().as_secs_f64()
             );
             Ok(())

@@ -155,6 +155,7 @@ fn report(args: ReportArgs) -> Result<(), String> {
                         spp,
                         ..settings.clone()
                     },
+                    frames: None,
                     tile_size: args.tile_size,
                 };
                 match render_through(&farm, &args.scene, spec).await {

@@ -170,14 +170,10 @@ pub fn run(args: SubmitArgs) -> ExitCode {
             done.elapsed_s.unwrap_or_default()
         );
         if let Some(out) = args.output {
-            let png = match client.image(done.id).await {
-                Ok(png) => png,
-                Err(e) => return fail(describe(&e)),
-            };
-            if let Err(e) = super::write_png(&out, &png) {
-                return fail(e);
+            match super::download(&client, &done, &out).await {
+                Ok(written) => eprintln!("wrote {}", super::describe_written(&written)),
+                Err(e) => return fail(e),
             }
-            eprintln!("wrote {}", out.display());
         }
         ExitCode::SUCCESS
     })

@@ -147,8 +147,27 @@ impl Files {
     }
 
     pub fn image(&self, job_id: u64) -> Result<Option<Vec<u8>>, StoreError> {
-        let path = self.image_path(job_id);
-        match fs::read(&path) {
+        Self::read_optional(&self.image_path(job_id))
+    }
+
+    fn frame_path(&self, job_id: u64, frame: u32) -> PathBuf {
+        self.job_dir(job_id)
+            .join("frames")
+            .join(format!("{frame:04}.png"))
+    }
+
+    /// One frame of a frame-range job. Written before [`Files::put_image`], which drops the
+    /// tiles every frame is assembled from.
+    pub fn put_frame_image(&self, job_id: u64, frame: u32, png: &[u8]) -> Result<(), StoreError> {
+        self.write_atomic(&self.frame_path(job_id, frame), png)
+    }
+
+    pub fn frame_image(&self, job_id: u64, frame: u32) -> Result<Option<Vec<u8>>, StoreError> {
+        Self::read_optional(&self.frame_path(job_id, frame))
+    }
+
+    fn read_optional(path: &Path) -> Result<Option<Vec<u8>>, StoreError> {
+        match fs::read(path) {
             Ok(bytes) => Ok(Some(bytes)),
             Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
             Err(e) => Err(StoreError::io(format!("reading {}", path.display()), e)),

@@ -1,5 +1,6 @@
 //! The farm's image equals the local render's, bytes for bytes, for any worker count and tile
-//! size; cancelling reaches rendering workers within about a second.
+//! size, frame by frame for a frame-range job; cancelling reaches rendering workers within
+//! about a second.
 
 use std::time::{Duration, Instant};
 
@@ -157,5 +158,89 @@ fn coordinator_render_matches_the_tracer_on_the_showcase_scene() {
             std::fs::read(&out).unwrap() == tracer,
             "coordinator render --workers {workers} differs from tracer render"
         );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_range_job_yields_each_frame_exactly_like_the_tracer() {
+    let tmp = tempfile::tempdir().unwrap();
+    let coord = start_coordinator(&tmp.path().join("data"), 0, &[], tmp.path().join("c.log"));
+    let _workers = [
+        start_worker(
+            &coord.url,
+            "w1",
+            &["--threads", "1"],
+            tmp.path().join("w1.log"),
+        ),
+        start_worker(
+            &coord.url,
+            "w2",
+            &["--threads", "1"],
+            tmp.path().join("w2.log"),
+        ),
+    ];
+    wait_for_workers(&coord.url, 2).await;
+    let client = Client::new(&coord.url, None).unwrap();
+    let scene = own_scene("motion_blur.scene");
+    let mut spec = small_spec(2, 16);
+    spec.render.width = 64;
+    spec.render.height = 48;
+    spec.frames = Some(tracer_core::FrameRange::new(2, 4).unwrap());
+    let job = submit(&client, &scene, spec.clone()).await;
+    assert_eq!(job.tiles_total, 3 * 4 * 3, "three frames of 4x3 tiles");
+    let done = wait_finished(&client, job.id, Duration::from_secs(60)).await;
+    assert_eq!(done.state, JobState::Done, "{done:?}");
+
+    let mut frames = Vec::new();
+    for frame in 2..=4 {
+        let farm_png = client.frame_image(job.id, frame).await.unwrap();
+        let mut still = spec.clone();
+        still.frames = None;
+        still.render.frame = frame;
+        let tracer = tracer_png(&scene, &still, tmp.path());
+        assert!(
+            farm_png == tracer,
+            "frame {frame}: the farm's PNG differs from tracer render --frame {frame}"
+        );
+        frames.push(farm_png);
+    }
+    assert_ne!(frames[0], frames[2], "the frames show the animation");
+    // The job's own image is its first frame; a frame it does not render is a 404.
+    assert_eq!(client.image(job.id).await.unwrap(), frames[0]);
+    let missing = reqwest::get(format!(
+        "{}/api/v1/jobs/{}/image?frame=9",
+        coord.url, job.id
+    ))
+    .await
+    .unwrap();
+    assert_eq!(missing.status(), 404);
+    assert!(missing.text().await.unwrap().contains("no frame 9"));
+
+    // The whole sequence as one download: numbered PNGs, in order, equal to the frames.
+    let tar = reqwest::get(format!("{}/api/v1/jobs/{}/frames.tar", coord.url, job.id))
+        .await
+        .unwrap();
+    assert_eq!(tar.status(), 200);
+    let bytes = tar.bytes().await.unwrap();
+    let mut archive = tar::Archive::new(bytes.as_ref());
+    let mut entries = Vec::new();
+    for entry in archive.entries().unwrap() {
+        let mut entry = entry.unwrap();
+        let name = entry.path().unwrap().display().to_string();
+        let mut data = Vec::new();
+        std::io::Read::read_to_end(&mut entry, &mut data).unwrap();
+        entries.push((name, data));
+    }
+    let names: Vec<&str> = entries.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "motion_blur_0002.png",
+            "motion_blur_0003.png",
+            "motion_blur_0004.png"
+        ]
+    );
+    for ((_, data), frame) in entries.iter().zip(&frames) {
+        assert!(data == frame);
     }
 }

@@ -28,6 +28,11 @@ pub fn shared() -> PathBuf {
     })
 }
 
+/// One of Tessera's own scenes in `scenes/`.
+pub fn own_scene(name: &str) -> PathBuf {
+    workspace().join("scenes").join(name)
+}
+
 pub fn course_scene(name: &str) -> PathBuf {
     shared().join("scenes").join("course").join(name)
 }
@@ -211,6 +216,7 @@ pub fn tracer_png(scene: &Path, spec: &JobSpec, out_dir: &Path) -> Vec<u8> {
             &s.max_depth.to_string(),
         ])
         .args(["--seed", &s.seed.to_string()])
+        .args(["--frame", &s.frame.to_string()])
         .stderr(Stdio::null())
         .status()
         .unwrap();

@@ -8,7 +8,8 @@ mod report;
 
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use tracer_core::{CameraOverride, RenderSettings, Renderer, Scene, TextureFilter};
+use tracer_core::settings::{numbered_path, parse_vec3};
+use tracer_core::{CameraOverride, FrameRange, RenderSettings, Renderer, Scene, TextureFilter};
 
 #[derive(Parser)]
 #[command(
@@ -42,8 +43,8 @@ enum Command {
         frame: Option<u32>,
         /// Render frames A through B inclusive (A..B), each to the output name with the
         /// frame number inserted: out.png → out_0003.png.
-        #[arg(long, value_parser = parse_frames)]
-        frames: Option<(u32, u32)>,
+        #[arg(long)]
+        frames: Option<FrameRange>,
     },
     /// Measure error against run time over sample counts and thread counts, against a
     /// high-sample reference: report.csv, report.md and error_vs_time.png.
@@ -123,50 +124,6 @@ impl SettingsArgs {
     }
 }
 
-/// `A..B`, inclusive, with A ≤ B.
-fn parse_frames(s: &str) -> Result<(u32, u32), String> {
-    let (a, b) = s
-        .split_once("..")
-        .ok_or_else(|| format!("expected A..B, got '{s}'"))?;
-    let num = |t: &str| {
-        t.trim()
-            .parse::<u32>()
-            .map_err(|_| format!("'{t}' is not a frame number"))
-    };
-    let (a, b) = (num(a)?, num(b)?);
-    if a > b {
-        return Err(format!("the range {a}..{b} is empty"));
-    }
-    Ok((a, b))
-}
-
-/// `out.png` with frame 3 → `out_0003.png`.
-fn numbered(output: &std::path::Path, frame: u32) -> PathBuf {
-    let stem = output
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let name = match output.extension() {
-        Some(ext) => format!("{stem}_{frame:04}.{}", ext.to_string_lossy()),
-        None => format!("{stem}_{frame:04}"),
-    };
-    output.with_file_name(name)
-}
-
-fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
-    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-    let [x, y, z] = parts.as_slice() else {
-        return Err(format!("expected x,y,z, got '{s}'"));
-    };
-    let num = |t: &str| {
-        t.parse::<f64>()
-            .ok()
-            .filter(|v| v.is_finite())
-            .ok_or_else(|| format!("'{t}' is not a finite number"))
-    };
-    Ok([num(x)?, num(y)?, num(z)?])
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
@@ -206,23 +163,20 @@ fn run(cli: Cli) -> Result<(), String> {
             let scene = pool
                 .install(|| Scene::load(&scene))
                 .map_err(|e| e.to_string())?;
-            let Some((first, last)) = frames else {
+            let Some(range) = frames else {
                 settings.frame = frame.unwrap_or(0);
                 return render_frame(&scene, &settings, &pool, &output, quiet, started);
             };
-            if last >= scene.frame_count() {
-                return Err(format!(
-                    "--frames {first}..{last}: the scene has {} frame(s), numbered from 0",
-                    scene.frame_count()
-                ));
-            }
-            for f in first..=last {
+            range
+                .validate(scene.frame_count())
+                .map_err(|e| format!("--frames: {e}"))?;
+            for f in range.frames() {
                 settings.frame = f;
                 render_frame(
                     &scene,
                     &settings,
                     &pool,
-                    &numbered(&output, f),
+                    &numbered_path(&output, f),
                     quiet,
                     Instant::now(),
                 )?;
