@@ -437,6 +437,34 @@ mod tests {
     }
 
     #[test]
+    fn candidates_stay_inside_the_slot_range_across_blocks() {
+        // Eleven triangles stacked along z, all under the ray, and one beside it.
+        let mut tris: Vec<[DVec3; 3]> = (0..11)
+            .map(|i| [DVec3::ZERO, DVec3::X, DVec3::Y].map(|c| c + DVec3::Z * i as f64))
+            .collect();
+        tris[5] = tris[5].map(|c| c + DVec3::X * 5.0);
+        let blocks = TriangleBlock::pack(&tris);
+        let ray = TriangleRay::new(&Ray::new(DVec3::new(0.25, 0.25, 20.0), -DVec3::Z));
+        let ray32 = TriangleRayF32::new(&ray);
+        for (start, end) in [(0, 11), (2, 7), (4, 8), (3, 4), (9, 11)] {
+            let mut seen = Vec::new();
+            any_candidate(&blocks, &tris, &ray32, start..end, |slot| {
+                seen.push(slot);
+                false
+            });
+            let expected: Vec<usize> = (start..end).filter(|&i| i != 5).collect();
+            assert_eq!(seen, expected);
+        }
+        // Returning true stops at once.
+        let mut calls = 0;
+        assert!(any_candidate(&blocks, &tris, &ray32, 0..11, |_| {
+            calls += 1;
+            true
+        }));
+        assert_eq!(calls, 1);
+    }
+
+    #[test]
     fn the_f32_pretest_rejects_nothing_it_cannot_represent() {
         let far = [
             DVec3::splat(1e20),
