@@ -3,9 +3,10 @@
 
 use glam::{DVec2, DVec3};
 
-use crate::accel::Bvh;
+use crate::accel::{Bvh, PADDING};
 use crate::geometry::{
-    intersect_triangle, intersect_unit_sphere_scaled, Aabb, Ray, Transform, TriangleRay,
+    any_candidate, intersect_triangle, intersect_unit_sphere_scaled, Aabb, Ray, Transform,
+    TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
 };
 use crate::scene::{Motion, TransformDesc};
 use crate::settings::TextureFilter;
@@ -41,7 +42,8 @@ pub struct WorldTriangle {
     pub materials: [u32; 3],
 }
 
-/// A mesh in local space with its own BVH; triangles are stored in BVH leaf order.
+/// A mesh in local space with its own BVH; triangles are stored in BVH leaf order, each leaf
+/// starting a block of four (gaps are padding slots, never reached).
 #[derive(Clone, Debug)]
 pub struct Mesh {
     pub corners: Vec<[DVec3; 3]>,
@@ -49,6 +51,8 @@ pub struct Mesh {
     pub normals: Vec<DVec3>,
     pub tex_coords: Vec<DVec2>,
     pub bvh: Bvh,
+    /// `corners` in f32 blocks for the traversal's pre-test.
+    pub blocks: Vec<TriangleBlock>,
 }
 
 impl Mesh {
@@ -58,55 +62,65 @@ impl Mesh {
         tex_coords: Vec<DVec2>,
         triangles: &[[u32; 3]],
     ) -> Mesh {
-        let bounds: Vec<Aabb> = triangles
-            .iter()
-            .map(|t| Aabb::from_points(&t.map(|i| positions[i as usize])))
-            .collect();
-        let bvh = Bvh::build(&bounds);
-        let indices: Vec<[u32; 3]> = bvh.order.iter().map(|&o| triangles[o as usize]).collect();
-        let corners = indices
+        let corners: Vec<[DVec3; 3]> = triangles
             .iter()
             .map(|t| t.map(|i| positions[i as usize]))
             .collect();
+        Mesh::in_leaf_order(&corners, triangles, normals, tex_coords)
+    }
+
+    /// The same mesh with its BVH built again from scratch (benchmarks time this).
+    pub fn rebuilt(&self) -> Mesh {
+        Mesh::in_leaf_order(
+            &self.corners,
+            &self.indices,
+            self.normals.clone(),
+            self.tex_coords.clone(),
+        )
+    }
+
+    /// Builds the BVH over `corners` (padding slots are skipped) and stores the triangles in
+    /// its leaf order.
+    fn in_leaf_order(
+        corners: &[[DVec3; 3]],
+        indices: &[[u32; 3]],
+        normals: Vec<DVec3>,
+        tex_coords: Vec<DVec2>,
+    ) -> Mesh {
+        use rayon::prelude::*;
+        let live: Vec<u32> = (0..indices.len() as u32)
+            .filter(|&i| indices[i as usize] != PADDING_TRIANGLE)
+            .collect();
+        let bounds: Vec<Aabb> = live
+            .par_iter()
+            .map(|&i| Aabb::from_points(&corners[i as usize]))
+            .collect();
+        let bvh = Bvh::build_aligned(&bounds, BLOCK);
+        let (corners, indices): (Vec<[DVec3; 3]>, Vec<[u32; 3]>) = bvh
+            .order
+            .par_iter()
+            .map(|&o| match o {
+                PADDING => ([DVec3::ZERO; 3], PADDING_TRIANGLE),
+                o => {
+                    let i = live[o as usize] as usize;
+                    (corners[i], indices[i])
+                }
+            })
+            .unzip();
+        let blocks = corners.par_chunks(BLOCK).map(TriangleBlock::new).collect();
         Mesh {
             corners,
             indices,
             normals,
             tex_coords,
             bvh,
+            blocks,
         }
     }
 }
 
-impl Mesh {
-    /// The same mesh with its BVH built again from scratch (benchmarks time this).
-    pub fn rebuilt(&self) -> Mesh {
-        use rayon::prelude::*;
-        let bounds: Vec<Aabb> = self
-            .corners
-            .par_iter()
-            .map(|c| Aabb::from_points(c))
-            .collect();
-        let bvh = Bvh::build(&bounds);
-        let corners = bvh
-            .order
-            .iter()
-            .map(|&o| self.corners[o as usize])
-            .collect();
-        let indices = bvh
-            .order
-            .iter()
-            .map(|&o| self.indices[o as usize])
-            .collect();
-        Mesh {
-            corners,
-            indices,
-            normals: self.normals.clone(),
-            tex_coords: self.tex_coords.clone(),
-            bvh,
-        }
-    }
-}
+/// The indices of a padding slot.
+const PADDING_TRIANGLE: [u32; 3] = [u32::MAX; 3];
 
 #[derive(Clone, Debug)]
 pub struct Model {
@@ -382,9 +396,9 @@ impl World {
                         let mesh = &self.meshes[model.mesh as usize];
                         let local = model.transform.ray_to_local(ray);
                         let tri_ray = TriangleRay::new(&local);
+                        let ray32 = TriangleRayF32::new(&tri_ray);
                         mesh.bvh.traverse(&local, t_max, |tris, t_max| {
-                            prefetch_corners(&mesh.corners, &tris);
-                            for tri in tris {
+                            any_candidate(&mesh.blocks, &mesh.corners, &ray32, tris, |tri| {
                                 let [a, b, c] = mesh.corners[tri];
                                 if let Some(h) =
                                     intersect_triangle(&tri_ray, a, b, c, t_min, *t_max)
@@ -397,8 +411,8 @@ impl World {
                                         bary: h.bary,
                                     });
                                 }
-                            }
-                            false
+                                false
+                            })
                         });
                     }
                     Object::Mover(i) => {
@@ -488,10 +502,10 @@ impl World {
                         let mesh = &self.meshes[model.mesh as usize];
                         let local = model.transform.ray_to_local(ray);
                         let tri_ray = TriangleRay::new(&local);
+                        let ray32 = TriangleRayF32::new(&tri_ray);
                         let mut limit = *t_max;
                         mesh.bvh.traverse_any(&local, &mut limit, |tris, t_max| {
-                            prefetch_corners(&mesh.corners, &tris);
-                            tris.into_iter().any(|tri| {
+                            any_candidate(&mesh.blocks, &mesh.corners, &ray32, tris, |tri| {
                                 let [a, b, c] = mesh.corners[tri];
                                 intersect_triangle(&tri_ray, a, b, c, 0.0, *t_max).is_some()
                             })
@@ -663,32 +677,6 @@ impl Lookup<'_> {
             absorption: m.absorption,
         }
     }
-}
-
-/// Starts fetching a leaf's triangles, so that their cache misses overlap instead of
-/// following one another (a hint only: nothing is read).
-#[inline(always)]
-#[allow(unused_unsafe)]
-fn prefetch_corners(corners: &[[DVec3; 3]], range: &std::ops::Range<usize>) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let start = corners.as_ptr().wrapping_add(range.start) as *const i8;
-        let bytes = range.len() * std::mem::size_of::<[DVec3; 3]>();
-        let mut offset = 0;
-        while offset < bytes {
-            // SAFETY: prefetching never faults, whatever the address.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(offset)) };
-            offset += 64;
-        }
-        if bytes > 0 {
-            // The last line, when the range does not start on a line boundary.
-            // SAFETY: as above.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(bytes - 1)) };
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (corners, range);
 }
 
 /// Latitude/longitude mapping of conventions §6 for a unit local-space point: u grows from

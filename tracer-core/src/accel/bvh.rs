@@ -86,6 +86,13 @@ impl Bvh {
     /// in parallel, then collapses the binary tree into 4-wide nodes. The result does not
     /// depend on the thread count.
     pub fn build(bounds: &[Aabb]) -> Bvh {
+        Bvh::build_aligned(bounds, 1)
+    }
+
+    /// Like [`Bvh::build`], with every leaf's first slot a multiple of `align`: `order` is
+    /// padded with [`PADDING`] slots, so that an owner can keep its primitives in blocks of
+    /// `align` with no leaf straddling two blocks it does not need.
+    pub fn build_aligned(bounds: &[Aabb], align: usize) -> Bvh {
         let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
         if bounds.is_empty() {
             return Bvh::default();
@@ -105,8 +112,14 @@ impl Bvh {
         let builder = Builder {
             bounds,
             centroids: &centroids,
+            align,
         };
-        let tree = builder.build(&mut order, 0, 0, root_bounds, root_centroids);
+        let mut tree = builder.build(&mut order, 0, 0, root_bounds, root_centroids);
+        if align > 1 {
+            let mut aligned = Vec::with_capacity(order.len() + order.len() / 2);
+            align_leaves(&mut tree, &order, align, &mut aligned);
+            order = aligned;
+        }
         let mut nodes = Vec::with_capacity(bounds.len() / 4 + 1);
         let root_bounds = tree.bounds();
         let depth = tree.depth();
@@ -177,7 +190,9 @@ impl Bvh {
     }
 
     /// The traversal loop, given a test that returns a node's hit mask and conservative
-    /// (never too large) entry distances.
+    /// (never too large) entry distances. A node's leaves are intersected at once (a hit
+    /// shrinks t_max and culls the rest); then the nearest interior child is visited next and
+    /// the others pushed farthest first (in node order for any-hit queries).
     #[inline(always)]
     fn traverse_with<const ORDERED: bool>(
         &self,
@@ -192,57 +207,53 @@ impl Bvh {
         let mut index = 0usize;
         loop {
             let node = &self.nodes[index];
-            let (mut mask, dist) = hit4(node, *t_max);
-            // Hit children sorted nearest first (insertion sort of at most four).
-            let mut sorted = [(0f32, 0usize); 4];
-            let mut n = 0;
-            while mask != 0 {
-                let c = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                let d = dist[c];
-                let mut i = n;
-                while ORDERED && i > 0 && sorted[i - 1].0 > d {
-                    sorted[i] = sorted[i - 1];
-                    i -= 1;
-                }
-                sorted[i] = (d, c);
-                n += 1;
-            }
-            // Leaves are intersected at once, since a hit shrinks t_max and culls the rest;
-            // the nearest interior child is visited next, the others pushed farthest first.
-            let mut next: Option<(u32, f32)> = None;
-            let mut pending = [(0u32, 0f32); 3];
-            let mut np = 0;
-            for &(d, c) in &sorted[..n] {
-                if d as f64 > *t_max {
-                    if ORDERED {
-                        break;
-                    }
-                    continue;
-                }
-                let child = node.index[c];
-                let count = node.count[c];
-                if count > 0 {
-                    let first = child as usize;
-                    if leaf(first..first + count as usize, t_max) {
+            let (mask, dist) = hit4(node, *t_max);
+            let leaves = mask & leaf_mask(node);
+            let mut inner = mask & !leaves;
+            let mut m = leaves;
+            while m != 0 {
+                let c = m.trailing_zeros() as usize;
+                m &= m - 1;
+                if dist[c] as f64 <= *t_max {
+                    let first = node.index[c] as usize;
+                    if leaf(first..first + node.count[c] as usize, t_max) {
                         return true;
                     }
-                } else if next.is_none() {
-                    prefetch(&self.nodes, child);
-                    next = Some((child, d));
-                } else {
-                    prefetch(&self.nodes, child);
-                    pending[np] = (child, d);
-                    np += 1;
                 }
             }
-            for &p in pending[..np].iter().rev() {
-                stack[top].write(p);
-                top += 1;
-            }
-            if let Some((n, d)) = next {
-                if d as f64 <= *t_max {
-                    index = n as usize;
+            if inner != 0 {
+                let c = inner.trailing_zeros() as usize;
+                inner &= inner - 1;
+                let mut near = (node.index[c], dist[c]);
+                prefetch(&self.nodes, near.0);
+                if inner != 0 {
+                    // Two to four interior children: push all but the nearest, farthest first.
+                    let mut rest = [(0u32, 0f32); 3];
+                    let mut n = 0;
+                    while inner != 0 {
+                        let c = inner.trailing_zeros() as usize;
+                        inner &= inner - 1;
+                        let mut child = (node.index[c], dist[c]);
+                        prefetch(&self.nodes, child.0);
+                        if ORDERED && child.1 < near.1 {
+                            std::mem::swap(&mut child, &mut near);
+                        }
+                        // Insertion into `rest`, kept farthest first.
+                        let mut i = n;
+                        while ORDERED && i > 0 && rest[i - 1].1 < child.1 {
+                            rest[i] = rest[i - 1];
+                            i -= 1;
+                        }
+                        rest[i] = child;
+                        n += 1;
+                    }
+                    for &p in &rest[..n] {
+                        stack[top].write(p);
+                        top += 1;
+                    }
+                }
+                if near.1 as f64 <= *t_max {
+                    index = near.0 as usize;
                     continue;
                 }
             }
@@ -258,6 +269,36 @@ impl Bvh {
                     index = n as usize;
                     break;
                 }
+            }
+        }
+    }
+}
+
+/// The slots of `node` that hold leaves.
+#[inline(always)]
+fn leaf_mask(node: &Node) -> u32 {
+    (node.count[0] > 0) as u32
+        | ((node.count[1] > 0) as u32) << 1
+        | ((node.count[2] > 0) as u32) << 2
+        | ((node.count[3] > 0) as u32) << 3
+}
+
+/// Marks a padding slot in the `order` of [`Bvh::build_aligned`].
+pub const PADDING: u32 = u32::MAX;
+
+/// Copies the leaves' primitives from `order` to `out` in leaf order, each leaf starting on a
+/// multiple of `align` (gaps filled with [`PADDING`]), and points the leaves at their new slots.
+fn align_leaves(tree: &mut Tree, order: &[u32], align: usize, out: &mut Vec<u32>) {
+    match tree {
+        Tree::Leaf { first, count, .. } => {
+            let start = out.len();
+            out.extend_from_slice(&order[*first as usize..(*first + *count) as usize]);
+            out.resize(out.len().next_multiple_of(align), PADDING);
+            *first = start as u32;
+        }
+        Tree::Interior { children, .. } => {
+            for child in children.iter_mut() {
+                align_leaves(child, order, align, out);
             }
         }
     }
@@ -530,6 +571,8 @@ fn pack_node(slots: &[&Tree], nodes: &mut Vec<Node>) -> u32 {
 struct Builder<'a> {
     bounds: &'a [Aabb],
     centroids: &'a [DVec3],
+    /// The owner tests primitives in blocks of this many at the cost of one.
+    align: usize,
 }
 
 /// Primitives whose centroid falls in a bin below `bin` on `axis` go to the left child.
@@ -631,6 +674,10 @@ impl Builder<'_> {
         if prims.len() <= 1 || depth + 2 >= MAX_DEPTH {
             return leaf;
         }
+        // One block is a leaf whatever the split: a split costs a traversal step more.
+        if prims.len() <= MAX_LEAF.min(self.align) {
+            return leaf;
+        }
         let Some(split) = self.find_split(prims, bounds, centroid_bounds) else {
             return leaf;
         };
@@ -714,8 +761,8 @@ impl Builder<'_> {
                 if count == 0 || right_count[split] == 0 {
                     continue;
                 }
-                let cost =
-                    area(&acc) * count as f64 + area(&right_box[split]) * right_count[split] as f64;
+                let cost = area(&acc) * self.blocks(count)
+                    + area(&right_box[split]) * self.blocks(right_count[split]);
                 if best.is_none_or(|(c, ..)| cost < c) {
                     best = Some((cost, axis, split, to_aabb(&acc), to_aabb(&right_box[split])));
                 }
@@ -724,7 +771,7 @@ impl Builder<'_> {
         let (cost, axis, bin, left, right) = best?;
         let split_cost =
             TRAVERSAL_COST + INTERSECT_COST * cost / bounds.surface_area().max(f64::MIN_POSITIVE);
-        let leaf_cost = INTERSECT_COST * prims.len() as f64;
+        let leaf_cost = INTERSECT_COST * self.blocks(prims.len());
         if prims.len() <= MAX_LEAF && leaf_cost <= split_cost {
             return None;
         }
@@ -737,6 +784,12 @@ impl Builder<'_> {
             left,
             right,
         })
+    }
+
+    /// The intersection cost of `n` primitives, in blocks.
+    #[inline(always)]
+    fn blocks(&self, n: usize) -> f64 {
+        n.div_ceil(self.align) as f64
     }
 
     /// In-place partition by `split`; returns the number of primitives going left and the
@@ -834,6 +887,26 @@ mod tests {
         }
         assert!(seen.iter().all(|&s| s == 1));
         assert!(bvh.depth() < 40, "depth {}", bvh.depth());
+    }
+
+    #[test]
+    fn aligned_leaves_start_on_block_boundaries_and_skip_padding() {
+        let prims = boxes(3000);
+        let bvh = Bvh::build_aligned(&prims, 4);
+        assert_eq!(bvh.order.len() % 4, 0);
+        let mut seen = vec![0; prims.len()];
+        let mut slots = 0;
+        for (_, first, count) in leaves(&bvh) {
+            assert_eq!(first % 4, 0);
+            for slot in first..first + count {
+                seen[bvh.order[slot as usize] as usize] += 1;
+            }
+            slots += count.next_multiple_of(4);
+        }
+        assert!(seen.iter().all(|&s| s == 1));
+        assert_eq!(slots as usize, bvh.order.len());
+        let padding = bvh.order.iter().filter(|&&o| o == PADDING).count();
+        assert_eq!(padding + prims.len(), bvh.order.len());
     }
 
     #[test]

@@ -3,4 +3,4 @@
 
 mod bvh;
 
-pub use bvh::{Bvh, Node};
+pub use bvh::{Bvh, Node, PADDING};

@@ -10,4 +10,6 @@ pub use bounds::Aabb;
 pub use ray::{Ray, TriangleRay};
 pub use sphere::intersect_unit_sphere_scaled;
 pub use transform::Transform;
-pub use triangle::{intersect_triangle, TriangleHit};
+pub use triangle::{
+    any_candidate, intersect_triangle, TriangleBlock, TriangleHit, TriangleRayF32, BLOCK,
+};

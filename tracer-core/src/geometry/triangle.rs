@@ -54,6 +54,297 @@ pub fn intersect_triangle(
     })
 }
 
+/// Triangles per [`TriangleBlock`].
+pub const BLOCK: usize = 4;
+
+/// Four triangles' corners rounded to f32, in SoA order, for [`TriangleRayF32::may_hit`]: a
+/// conservative test that rejects most triangles a ray misses while reading a third of the
+/// memory of their f64 corners. Unused lanes hold zeros.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(32))]
+pub struct TriangleBlock {
+    /// `corners[k][axis]`: corner k of each lane, on `axis`, rounded to nearest.
+    corners: [[[f32; BLOCK]; 3]; 3],
+    /// Per lane: the largest |coordinate| of the three f64 corners, rounded up, which bounds
+    /// their rounding error; +∞ where f32 cannot represent the triangle safely.
+    scale: [f32; BLOCK],
+}
+
+/// Coordinates this large or larger could overflow f32 products in the pre-test.
+const F32_LIMIT: f64 = 1e15;
+
+impl TriangleBlock {
+    /// One block per [`BLOCK`] triangles; the last block's missing lanes stay empty.
+    pub fn pack(triangles: &[[DVec3; 3]]) -> Vec<TriangleBlock> {
+        triangles.chunks(BLOCK).map(TriangleBlock::new).collect()
+    }
+
+    /// The block of up to [`BLOCK`] triangles; missing lanes stay empty.
+    pub fn new(triangles: &[[DVec3; 3]]) -> TriangleBlock {
+        let mut block = TriangleBlock {
+            corners: [[[0.0; BLOCK]; 3]; 3],
+            scale: [0.0; BLOCK],
+        };
+        for (lane, tri) in triangles.iter().take(BLOCK).enumerate() {
+            let mut scale = 0f64;
+            for (k, corner) in tri.iter().enumerate() {
+                for axis in 0..3 {
+                    block.corners[k][axis][lane] = corner[axis] as f32;
+                }
+                scale = scale.max(corner.abs().max_element());
+            }
+            let finite = tri.iter().all(|c| c.is_finite());
+            block.scale[lane] = if finite && scale < F32_LIMIT {
+                round_up(scale)
+            } else {
+                f32::INFINITY
+            };
+        }
+        block
+    }
+}
+
+/// The smallest f32 not below `v`.
+fn round_up(v: f64) -> f32 {
+    let f = v as f32;
+    if (f as f64) < v {
+        f.next_up()
+    } else {
+        f
+    }
+}
+
+/// Per-ray constants of [`TriangleRayF32::may_hit`], from the same [`TriangleRay`] the exact
+/// test uses.
+#[derive(Clone, Copy, Debug)]
+pub struct TriangleRayF32 {
+    kx: usize,
+    ky: usize,
+    kz: usize,
+    origin: [f32; 3],
+    shear: [f32; 2],
+    /// Rounding-error scale of the origin: its largest |coordinate|, rounded up.
+    scale: f32,
+}
+
+/// f32 unit roundoff (2^-24).
+const U32: f32 = 1.0 / (1u32 << 24) as f32;
+
+impl TriangleRayF32 {
+    pub fn new(ray: &TriangleRay) -> TriangleRayF32 {
+        let o = ray.origin;
+        let scale = if o.is_finite() {
+            o.abs().max_element()
+        } else {
+            f64::INFINITY
+        };
+        TriangleRayF32 {
+            kx: ray.kx,
+            ky: ray.ky,
+            kz: ray.kz,
+            origin: [o.x as f32, o.y as f32, o.z as f32],
+            shear: [ray.shear.x as f32, ray.shear.y as f32],
+            scale: if scale < F32_LIMIT {
+                round_up(scale)
+            } else {
+                f32::INFINITY
+            },
+        }
+    }
+
+    /// The lanes of `block` whose triangle [`intersect_triangle`] might hit (ignoring the
+    /// distance range). A lane is left out only when its edge functions, evaluated in f32,
+    /// have opposite signs by more than their error bound, so the exact test would miss too.
+    ///
+    /// Error bound, with u = 2^-24 and M = the triangle's plus the origin's coordinate scale:
+    /// the sheared corner coordinates (ax, ay, …) are each within e = 8uM of the exact ones
+    /// (rounding the corners, origin and shear, and five operations); an edge function
+    /// cx·by − cy·bx is then within e(|cx|+|by|+|cy|+|bx|) + 2e² + 2u(|cx·by|+|cy·bx|). The
+    /// bound used doubles every term (covering the f64 test's own error and the bound's
+    /// rounding) and adds 1e-30 for underflow. Overflow or NaN never passes a comparison, so
+    /// it rejects nothing.
+    #[inline(always)]
+    pub fn may_hit(&self, block: &TriangleBlock) -> u32 {
+        #[cfg(target_arch = "x86_64")]
+        {
+            self.may_hit_sse(block)
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self.may_hit_scalar(block)
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    #[allow(unused_unsafe)]
+    fn may_hit_sse(&self, block: &TriangleBlock) -> u32 {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE is part of the x86_64 baseline; loads read 16-byte [f32; 4] rows.
+        unsafe {
+            let (kx, ky, kz) = (self.kx, self.ky, self.kz);
+            let ox = _mm_set1_ps(self.origin[kx]);
+            let oy = _mm_set1_ps(self.origin[ky]);
+            let oz = _mm_set1_ps(self.origin[kz]);
+            let sx = _mm_set1_ps(self.shear[0]);
+            let sy = _mm_set1_ps(self.shear[1]);
+            let project = |k: usize| {
+                let c = &block.corners[k];
+                let x = _mm_sub_ps(_mm_loadu_ps(c[kx].as_ptr()), ox);
+                let y = _mm_sub_ps(_mm_loadu_ps(c[ky].as_ptr()), oy);
+                let z = _mm_sub_ps(_mm_loadu_ps(c[kz].as_ptr()), oz);
+                (
+                    _mm_sub_ps(x, _mm_mul_ps(sx, z)),
+                    _mm_sub_ps(y, _mm_mul_ps(sy, z)),
+                )
+            };
+            let (ax, ay) = project(0);
+            let (bx, by) = project(1);
+            let (cx, cy) = project(2);
+            let sign = _mm_set1_ps(-0.0);
+            let abs = |v: __m128| _mm_andnot_ps(sign, v);
+            let scale = _mm_add_ps(_mm_loadu_ps(block.scale.as_ptr()), _mm_set1_ps(self.scale));
+            // e doubled: 16uM.
+            let e = _mm_mul_ps(scale, _mm_set1_ps(16.0 * U32));
+            // 2e² doubled, plus the underflow margin.
+            let base = _mm_add_ps(
+                _mm_mul_ps(_mm_mul_ps(e, e), _mm_set1_ps(4.0)),
+                _mm_set1_ps(1e-30),
+            );
+            let (sa, sb, sc) = (
+                _mm_add_ps(abs(ax), abs(ay)),
+                _mm_add_ps(abs(bx), abs(by)),
+                _mm_add_ps(abs(cx), abs(cy)),
+            );
+            let rel = _mm_set1_ps(4.0 * U32);
+            // One edge function p − q and its error bound, given its corners' |x|+|y| sums.
+            let edge = |p: __m128, q: __m128, s0: __m128, s1: __m128| {
+                let f = _mm_sub_ps(p, q);
+                let bound = _mm_add_ps(
+                    _mm_add_ps(_mm_mul_ps(e, _mm_add_ps(s0, s1)), base),
+                    _mm_mul_ps(rel, _mm_add_ps(abs(p), abs(q))),
+                );
+                (f, bound)
+            };
+            let (u, eu) = edge(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx), sb, sc);
+            let (v, ev) = edge(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx), sa, sc);
+            let (w, ew) = edge(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax), sa, sb);
+            let neg = |f: __m128, b: __m128| _mm_cmplt_ps(f, _mm_xor_ps(b, sign));
+            let pos = |f: __m128, b: __m128| _mm_cmpgt_ps(f, b);
+            let any_neg = _mm_or_ps(_mm_or_ps(neg(u, eu), neg(v, ev)), neg(w, ew));
+            let any_pos = _mm_or_ps(_mm_or_ps(pos(u, eu), pos(v, ev)), pos(w, ew));
+            let miss = _mm_movemask_ps(_mm_and_ps(any_neg, any_pos)) as u32;
+            !miss & 0xf
+        }
+    }
+
+    /// The same test lane by lane, for targets without SSE (and as the SSE version's check).
+    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+    fn may_hit_scalar(&self, block: &TriangleBlock) -> u32 {
+        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
+        let [ox, oy, oz] = [self.origin[kx], self.origin[ky], self.origin[kz]];
+        let [sx, sy] = self.shear;
+        let mut mask = 0;
+        for lane in 0..BLOCK {
+            let project = |k: usize| {
+                let c = &block.corners[k];
+                let z = c[kz][lane] - oz;
+                ((c[kx][lane] - ox) - sx * z, (c[ky][lane] - oy) - sy * z)
+            };
+            let (ax, ay) = project(0);
+            let (bx, by) = project(1);
+            let (cx, cy) = project(2);
+            let e = (block.scale[lane] + self.scale) * (16.0 * U32);
+            let base = e * e * 4.0 + 1e-30;
+            let (sa, sb, sc) = (
+                ax.abs() + ay.abs(),
+                bx.abs() + by.abs(),
+                cx.abs() + cy.abs(),
+            );
+            let edge = |p: f32, q: f32, s0: f32, s1: f32| {
+                (
+                    p - q,
+                    e * (s0 + s1) + base + 4.0 * U32 * (p.abs() + q.abs()),
+                )
+            };
+            let (u, eu) = edge(cx * by, cy * bx, sb, sc);
+            let (v, ev) = edge(ax * cy, ay * cx, sa, sc);
+            let (w, ew) = edge(bx * ay, by * ax, sa, sb);
+            let any_neg = u < -eu || v < -ev || w < -ew;
+            let any_pos = u > eu || v > ev || w > ew;
+            if !(any_neg && any_pos) {
+                mask |= 1 << lane;
+            }
+        }
+        mask
+    }
+}
+
+/// Calls `test` on each slot in `slots` whose triangle the f32 pre-test cannot rule out, in
+/// slot order, until it returns true (then returns true). `blocks[i]` holds slots 4i..4i+4,
+/// whose f64 corners `corners` holds (prefetched for the survivors before `test` runs).
+#[inline(always)]
+pub fn any_candidate(
+    blocks: &[TriangleBlock],
+    corners: &[[DVec3; 3]],
+    ray: &TriangleRayF32,
+    slots: std::ops::Range<usize>,
+    mut test: impl FnMut(usize) -> bool,
+) -> bool {
+    let first = slots.start / BLOCK;
+    let leaf_blocks = &blocks[first..slots.end.div_ceil(BLOCK)];
+    prefetch(leaf_blocks.as_ptr(), size_of_val(leaf_blocks));
+    for (b, block) in leaf_blocks.iter().enumerate() {
+        let base = (first + b) * BLOCK;
+        // Lanes inside `slots`.
+        let lo = slots.start.saturating_sub(base);
+        let hi = (slots.end - base).min(BLOCK);
+        let lanes = ((1u32 << hi) - 1) & !((1u32 << lo) - 1);
+        let mut mask = ray.may_hit(block) & lanes;
+        let mut m = mask;
+        while m != 0 {
+            let lane = m.trailing_zeros() as usize;
+            m &= m - 1;
+            prefetch(
+                corners.as_ptr().wrapping_add(base + lane),
+                size_of::<[DVec3; 3]>(),
+            );
+        }
+        while mask != 0 {
+            let lane = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            if test(base + lane) {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+/// Starts fetching the cache lines of `bytes` bytes at `p` (a hint: nothing is read).
+#[inline(always)]
+#[allow(unused_unsafe)]
+fn prefetch<T>(p: *const T, bytes: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let p = p as *const i8;
+        let mut offset = 0;
+        while offset < bytes {
+            // SAFETY: prefetching never faults, whatever the address.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(offset)) };
+            offset += 64;
+        }
+        if bytes > 0 {
+            // The last line, when `p` does not start on a line boundary.
+            // SAFETY: as above.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(bytes - 1)) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (p, bytes);
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -68,6 +359,127 @@ mod tests {
             0.0,
             f64::INFINITY,
         )
+    }
+
+    /// A deterministic uniform generator in [0, 1).
+    fn rng(mut state: u64) -> impl FnMut() -> f64 {
+        move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        }
+    }
+
+    fn point(next: &mut impl FnMut() -> f64) -> DVec3 {
+        DVec3::new(next(), next(), next())
+    }
+
+    #[test]
+    fn the_f32_pretest_never_rejects_a_hit_and_rejects_clear_misses() {
+        let mut next = rng(42);
+        for (size, offset) in [
+            (1.0, 0.0),
+            (1e-3, 0.0),
+            (1e-3, 50.0),
+            (1e4, -1e5),
+            (1e-6, 1.0),
+        ] {
+            let (mut rejected, mut misses) = (0, 0);
+            for _ in 0..300 {
+                let centre = point(&mut next) * 10.0 * size + DVec3::splat(offset);
+                let tris: Vec<[DVec3; 3]> = (0..4)
+                    .map(|_| [0, 1, 2].map(|_| centre + (point(&mut next) - 0.5) * size))
+                    .collect();
+                let blocks = TriangleBlock::pack(&tris);
+                // Aim at a corner, a point on an edge or inside, from near or far.
+                let target = (next() * 4.0) as usize;
+                let t = &tris[target];
+                let (w1, w2) = match (next() * 3.0) as usize {
+                    0 => (0.0, 0.0),
+                    1 => (next(), 0.0),
+                    _ => (next() * 0.5, next() * 0.5),
+                };
+                let aim = t[0] + (t[1] - t[0]) * w1 + (t[2] - t[0]) * w2;
+                let dir = (point(&mut next) - 0.5).normalize() * (0.1 + next() * 10.0);
+                let origin = aim - dir * (next() * 100.0 * size / dir.length());
+                let ray = TriangleRay::new(&Ray::new(origin, dir));
+                let ray32 = TriangleRayF32::new(&ray);
+                let mask = ray32.may_hit(&blocks[0]);
+                assert_eq!(mask, ray32.may_hit_scalar(&blocks[0]));
+                for (lane, tri) in tris.iter().enumerate() {
+                    let hit = intersect_triangle(
+                        &ray,
+                        tri[0],
+                        tri[1],
+                        tri[2],
+                        f64::NEG_INFINITY,
+                        f64::INFINITY,
+                    );
+                    if hit.is_some() {
+                        assert!(mask & (1 << lane) != 0, "hit rejected at size {size}");
+                    } else if lane != target {
+                        // The target may be grazed, a miss that f32 cannot tell.
+                        misses += 1;
+                        rejected += (mask & (1 << lane) == 0) as usize;
+                    }
+                }
+            }
+            // Where f32 resolves the triangles well, almost every miss is rejected: only rays
+            // grazing an edge are left to the f64 test.
+            if size >= 1e-2 * offset.abs() {
+                assert!(
+                    rejected * 10 > misses * 9,
+                    "{rejected} of {misses} misses rejected"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn candidates_stay_inside_the_slot_range_across_blocks() {
+        // Eleven triangles stacked along z, all under the ray, and one beside it.
+        let mut tris: Vec<[DVec3; 3]> = (0..11)
+            .map(|i| [DVec3::ZERO, DVec3::X, DVec3::Y].map(|c| c + DVec3::Z * i as f64))
+            .collect();
+        tris[5] = tris[5].map(|c| c + DVec3::X * 5.0);
+        let blocks = TriangleBlock::pack(&tris);
+        let ray = TriangleRay::new(&Ray::new(DVec3::new(0.25, 0.25, 20.0), -DVec3::Z));
+        let ray32 = TriangleRayF32::new(&ray);
+        for (start, end) in [(0, 11), (2, 7), (4, 8), (3, 4), (9, 11)] {
+            let mut seen = Vec::new();
+            any_candidate(&blocks, &tris, &ray32, start..end, |slot| {
+                seen.push(slot);
+                false
+            });
+            let expected: Vec<usize> = (start..end).filter(|&i| i != 5).collect();
+            assert_eq!(seen, expected);
+        }
+        // Returning true stops at once.
+        let mut calls = 0;
+        assert!(any_candidate(&blocks, &tris, &ray32, 0..11, |_| {
+            calls += 1;
+            true
+        }));
+        assert_eq!(calls, 1);
+    }
+
+    #[test]
+    fn the_f32_pretest_rejects_nothing_it_cannot_represent() {
+        let far = [
+            DVec3::splat(1e20),
+            DVec3::new(1e20, 2e20, 1e20),
+            DVec3::splat(3e20),
+        ];
+        let nan = [DVec3::ZERO, DVec3::X, DVec3::splat(f64::NAN)];
+        let blocks = TriangleBlock::pack(&[far, nan]);
+        let ray = TriangleRay::new(&Ray::new(DVec3::new(0.0, 5.0, 0.0), DVec3::Z));
+        assert_eq!(TriangleRayF32::new(&ray).may_hit(&blocks[0]) & 0b11, 0b11);
+        // An origin out of f32's safe range disables rejection too.
+        let tri = [DVec3::ZERO, DVec3::X, DVec3::Y];
+        let blocks = TriangleBlock::pack(&[tri]);
+        let ray = TriangleRay::new(&Ray::new(DVec3::new(1e17, 0.0, 1.0), DVec3::Z));
+        assert_eq!(TriangleRayF32::new(&ray).may_hit(&blocks[0]) & 1, 1);
     }
 
     #[test]
