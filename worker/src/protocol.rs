@@ -234,7 +234,7 @@ pub struct WorkerInfo {
 }
 
 /// `GET /events` event names. Each `data` is JSON: a [`JobInfo`] (a job was submitted or
-/// changed), a [`TileInfo`] (a tile changed state), every [`WorkerInfo`] (every two seconds),
+/// changed), a [`TileInfo`] (a tile changed state), every [`WorkerInfo`] (after tile changes and every two seconds),
 /// or `null` (events were dropped for a slow reader: fetch everything again).
 pub const EVENT_JOB: &str = "job";
 pub const EVENT_TILE: &str = "tile";

@@ -16,8 +16,8 @@ use worker::protocol::{EVENT_JOB, EVENT_RESYNC, EVENT_TILE, EVENT_WORKERS};
 use super::AppState;
 use crate::farm::{Farm, FarmEvent};
 
-/// How often the worker list goes out whole: worker states also change with time alone
-/// (a silent worker becomes lost), which no notification marks.
+/// How often the worker list goes out whole (it also does after tile changes): worker states
+/// also change with time alone (a silent worker becomes lost), which no notification marks.
 const WORKERS_EVERY: Duration = Duration::from_secs(2);
 
 struct Reader {
@@ -52,6 +52,8 @@ impl Reader {
                 Err(TryRecvError::Empty | TryRecvError::Closed) => break,
             }
         }
+        // Tiles changing hands change their workers' states too.
+        let workers_changed = batch.iter().any(|e| matches!(e, FarmEvent::Tile(..)));
         let mut seen = HashSet::new();
         for e in batch {
             if !seen.insert(e.clone()) {
@@ -70,6 +72,10 @@ impl Reader {
                 }
             };
             self.ready.extend(event);
+        }
+        if workers_changed {
+            let workers = self.workers();
+            self.ready.push_back(workers);
         }
     }
 

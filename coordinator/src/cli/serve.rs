@@ -1,5 +1,6 @@
 //! `coordinator serve`: a long-running coordinator for a farm of separate workers.
 
+use std::io::Write;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -139,9 +140,13 @@ pub fn run(args: ServeArgs) -> ExitCode {
             .local_addr()
             .map(|a| a.to_string())
             .unwrap_or_default();
-        // Scripts and tests read the address (port 0 picks one) from the first line.
-        println!("listening on http://{local}");
-        println!("dashboard: http://{local}/");
+        // Scripts and tests read the address (port 0 picks one) from the first line. A reader
+        // may close the pipe after it: a failed write must not stop the server.
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(out, "listening on http://{local}");
+        let _ = writeln!(out, "dashboard: http://{local}/");
+        let _ = out.flush();
+        drop(out);
         tracing::info!(
             "coordinator {} on http://{local}, data in {}{}",
             env!("CARGO_PKG_VERSION"),
