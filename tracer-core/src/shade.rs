@@ -5,6 +5,7 @@
 use glam::DVec3;
 
 use crate::geometry::Ray;
+use crate::photon::CausticMap;
 use crate::sampler::Rng;
 use crate::scene::{Light, Scene};
 use crate::settings::TextureFilter;
@@ -108,6 +109,8 @@ pub struct Tracer<'a> {
     pub radiance_rays: u32,
     /// Shadow rays traced for this sample.
     pub shadow_rays: u32,
+    /// Caustic photons gathered at diffuse hits, when the render has them.
+    pub caustics: Option<&'a CausticMap>,
 }
 
 impl<'a> Tracer<'a> {
@@ -118,6 +121,7 @@ impl<'a> Tracer<'a> {
             max_depth,
             radiance_rays: 0,
             shadow_rays: 0,
+            caustics: None,
         }
     }
 
@@ -158,6 +162,9 @@ impl<'a> Tracer<'a> {
                 direct +=
                     self.direct_light(light, s.position, n, s.geometric_normal, error_scale, rng)
                         * s.diffuse;
+            }
+            if let Some(map) = self.caustics {
+                direct += map.irradiance(s.position, n) * s.diffuse;
             }
             let mut color = s.texture * direct;
             let tint = s.texture * s.specular;

@@ -99,6 +99,7 @@ impl SettingsArgs {
                 } else {
                     d.texture_filter
                 },
+                ..d
             },
             tile_size: self.tile_size,
         })

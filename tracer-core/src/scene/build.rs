@@ -41,6 +41,8 @@ pub struct Scene {
     pub(crate) textures: Vec<Texture>,
     pub(crate) world: World,
     pub stats: SceneStats,
+    /// The caustic photon map, built by the first renderer that needs it (`photon.rs`).
+    pub(crate) caustic_cache: crate::photon::CausticCache,
 }
 
 impl Scene {
@@ -207,6 +209,7 @@ impl Scene {
             },
             textures,
             world,
+            caustic_cache: Default::default(),
         })
     }
 }

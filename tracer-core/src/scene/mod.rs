@@ -11,8 +11,8 @@ mod xml;
 pub use assets::{AssetSource, FsAssets, MemoryAssets};
 pub use build::{Light, Scene, SceneStats};
 pub use desc::{
-    parse_c_double, CameraDesc, LightDesc, MaterialDesc, MeshDesc, ModelDesc, SceneDescription,
-    SphereDesc, TransformDesc, TriangleDesc, VertexDesc,
+    parse_c_double, CameraDesc, CausticsDesc, LightDesc, MaterialDesc, MeshDesc, ModelDesc,
+    SceneDescription, SphereDesc, TransformDesc, TriangleDesc, VertexDesc,
 };
 pub use error::SceneError;
 pub use obj::{parse_obj, smooth_normals, MeshData};
