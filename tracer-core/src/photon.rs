@@ -352,13 +352,23 @@ fn casters(scene: &Scene) -> Vec<Caster> {
         let m = &scene.materials[m as usize];
         m.ior != 0.0 || m.specular != DVec3::ZERO
     };
+    // A sphere's own bounding sphere: its box's would be √3 times wider and waste photons.
     let spheres = world
         .spheres
         .iter()
         .filter(|s| focuses(s.material))
-        .map(|s| {
-            let r = DVec3::splat(s.radius);
-            s.transform.bounds_to_world(Aabb { min: -r, max: r })
+        .filter_map(|s| {
+            let m = s.transform.to_world.matrix3;
+            let stretch = m
+                .x_axis
+                .length()
+                .max(m.y_axis.length())
+                .max(m.z_axis.length());
+            let c = Caster {
+                center: s.transform.to_world.translation,
+                radius: s.radius * stretch,
+            };
+            (c.center.is_finite() && c.radius.is_finite() && c.radius > 0.0).then_some(c)
         });
     let triangles = world
         .triangles
@@ -374,9 +384,7 @@ fn casters(scene: &Scene) -> Vec<Caster> {
                 .bounds_to_world(world.meshes[m.mesh as usize].bvh.bounds())
         });
     spheres
-        .chain(triangles)
-        .chain(models)
-        .filter_map(Caster::from_box)
+        .chain(triangles.chain(models).filter_map(Caster::from_box))
         .collect()
 }
 
