@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
-use tracer_core::{CameraOverride, RenderSettings, TextureFilter};
+use tracer_core::{CameraOverride, CausticsSettings, RenderSettings, TextureFilter};
 use worker::protocol::{JobSpec, DEFAULT_TILE_SIZE};
 
 pub use submit::collect_submission;
@@ -65,6 +65,18 @@ pub struct SettingsArgs {
     /// Bilinear texture filtering instead of nearest texel.
     #[arg(long)]
     pub bilinear: bool,
+    /// Caustics by photon mapping, even if the scene has no <caustics> element.
+    #[arg(long, conflicts_with = "no_caustics")]
+    pub caustics: bool,
+    /// No caustics, even if the scene asks for them.
+    #[arg(long)]
+    pub no_caustics: bool,
+    /// Caustic photons to emit (turns caustics on; overrides the scene's count).
+    #[arg(long, conflicts_with = "no_caustics")]
+    pub photons: Option<u32>,
+    /// Caustic gather radius in scene units (turns caustics on; overrides the scene's).
+    #[arg(long, conflicts_with = "no_caustics")]
+    pub photon_radius: Option<f64>,
     /// Tile edge in pixels.
     #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
     pub tile_size: u32,
@@ -99,7 +111,15 @@ impl SettingsArgs {
                 } else {
                     d.texture_filter
                 },
-                ..d
+                caustics: CausticsSettings {
+                    enabled: if self.no_caustics {
+                        Some(false)
+                    } else {
+                        self.caustics.then_some(true)
+                    },
+                    photons: self.photons,
+                    radius: self.photon_radius,
+                },
             },
             tile_size: self.tile_size,
         })

@@ -190,14 +190,15 @@ fn run(cli: Cli) -> Result<(), String> {
                 .install(|| Scene::load(&scene))
                 .map_err(|e| e.to_string())?;
             // Inside the pool: building a caustic map uses the same threads as rendering.
+            let prepared = Instant::now();
             let renderer = pool.install(|| Renderer::new(&scene, &settings))?;
             if let Some(map) = renderer.caustics() {
                 eprintln!(
-                    "caustics: {} photons emitted, {} stored, gather radius {}, {:.2} s",
+                    "caustics: {} photons emitted, {} stored, gather radius {}, built in {:.2} s",
                     map.emitted(),
                     map.len(),
                     map.radius(),
-                    started.elapsed().as_secs_f64()
+                    prepared.elapsed().as_secs_f64()
                 );
             }
             let total = settings.width as u64 * settings.height as u64;
