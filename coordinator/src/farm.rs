@@ -1437,7 +1437,10 @@ mod tests {
         assert_eq!(last, Some(job.id));
         f.farm.assemble(job.id).unwrap();
         let frames = f.farm.frame_images(job.id).unwrap();
-        assert_eq!(frames.iter().map(|(n, _)| *n).collect::<Vec<_>>(), [3, 4, 5]);
+        assert_eq!(
+            frames.iter().map(|(n, _)| *n).collect::<Vec<_>>(),
+            [3, 4, 5]
+        );
         for (frame, png) in &frames {
             let image = tracer_core::Image::from_png_bytes(png).unwrap();
             let expected = (*frame as f32 / 10.0 * 255.0 + 1e-4).floor() / 255.0;

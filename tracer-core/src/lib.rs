@@ -6,8 +6,8 @@
 //!   [`Scene`] built from only the assets the description references;
 //! - [`geometry`] and [`accel`]: rays, transforms, intersectors and BVHs; [`world`] puts
 //!   them together for closest-hit and shadow queries;
-//! - [`shade`]: the course's shading model; [`camera`] and [`sampler`] make eye rays and
-//!   per-sample random numbers;
+//! - [`shade`]: the course's shading model, with [`photon`]'s opt-in caustic map; [`camera`]
+//!   and [`sampler`] make eye rays and per-sample random numbers;
 //! - [`render`]: tiles and whole images in parallel; [`film`]: f32 images and PNG encoding.
 
 pub mod accel;
@@ -17,6 +17,7 @@ pub mod convergence;
 pub mod film;
 pub mod geometry;
 pub mod metrics;
+pub mod photon;
 pub mod render;
 #[cfg(feature = "report")]
 pub mod report;
@@ -30,4 +31,6 @@ pub mod world;
 pub use film::Image;
 pub use render::Renderer;
 pub use scene::{AssetSource, FsAssets, MemoryAssets, Scene, SceneError};
-pub use settings::{CameraOverride, FrameRange, RenderSettings, TextureFilter, TileRect};
+pub use settings::{
+    CameraOverride, CausticsSettings, FrameRange, RenderSettings, TextureFilter, TileRect,
+};

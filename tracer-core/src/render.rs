@@ -2,12 +2,14 @@
 //! A pixel's value depends only on (scene, settings, pixel), so any tiling gives the same bytes.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::film::Image;
+use crate::photon::{caustic_map, CausticMap};
 use crate::sampler::{concentric_disk, strata, Rng, Stream};
 use crate::scene::Scene;
 use crate::settings::{RenderSettings, TileRect};
@@ -31,6 +33,7 @@ pub struct Renderer<'a> {
     strata: (u32, u32),
     radiance_rays: AtomicU64,
     shadow_rays: AtomicU64,
+    caustics: Option<Arc<CausticMap>>,
 }
 
 impl<'a> Renderer<'a> {
@@ -68,6 +71,7 @@ impl<'a> Renderer<'a> {
             strata: strata(settings.spp),
             radiance_rays: AtomicU64::new(0),
             shadow_rays: AtomicU64::new(0),
+            caustics: caustic_map(scene, settings),
         })
     }
 
@@ -92,6 +96,11 @@ impl<'a> Renderer<'a> {
 
     pub fn camera(&self) -> &Camera {
         &self.camera
+    }
+
+    /// The caustic photon map this render gathers from, if caustics are on.
+    pub fn caustics(&self) -> Option<&CausticMap> {
+        self.caustics.as_deref()
     }
 
     /// Rays traced so far by this renderer (radiance and shadow rays).
@@ -150,6 +159,7 @@ impl<'a> Renderer<'a> {
             self.settings.texture_filter,
             self.settings.max_depth,
         );
+        tracer.caustics = self.caustics.as_deref();
         let mut radiance_rays = 0u64;
         let mut shadow_rays = 0u64;
         for (i, px) in out.chunks_exact_mut(3).enumerate() {

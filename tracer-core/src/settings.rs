@@ -30,6 +30,48 @@ fn default_up() -> [f64; 3] {
     [0.0, 1.0, 0.0]
 }
 
+/// Caustic photon mapping requested by the render rather than the scene (see `photon.rs`).
+/// The default follows the scene: caustics are on exactly when it has a `<caustics>` element.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CausticsSettings {
+    /// Some(true) turns caustics on even without `<caustics>`, Some(false) turns them off;
+    /// None follows the scene, or turns them on if `photons` or `radius` is given.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub enabled: Option<bool>,
+    /// Photons emitted, replacing the scene's count.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub photons: Option<u32>,
+    /// Gather radius in scene units, replacing the scene's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub radius: Option<f64>,
+}
+
+impl CausticsSettings {
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if let Some(n) = self.photons {
+            if n == 0 || n > crate::photon::MAX_PHOTONS {
+                return Err(format!(
+                    "caustic photons {n} must lie between 1 and {}",
+                    crate::photon::MAX_PHOTONS
+                ));
+            }
+        }
+        if let Some(r) = self.radius {
+            if !(r.is_finite() && r > 0.0) {
+                return Err(format!(
+                    "caustic gather radius {r} must be a positive number"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Everything besides the scene that decides a rendered pixel.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -45,6 +87,9 @@ pub struct RenderSettings {
     pub texture_filter: TextureFilter,
     /// Frame of an animated scene (time = frame); 0 for a still.
     pub frame: u32,
+    /// Left out of the JSON when default, so that jobs without caustics serialise as before.
+    #[serde(skip_serializing_if = "CausticsSettings::is_default")]
+    pub caustics: CausticsSettings,
 }
 
 impl Default for RenderSettings {
@@ -58,6 +103,7 @@ impl Default for RenderSettings {
             camera: None,
             texture_filter: TextureFilter::Nearest,
             frame: 0,
+            caustics: CausticsSettings::default(),
         }
     }
 }
@@ -74,6 +120,7 @@ impl RenderSettings {
         if self.spp == 0 {
             return Err("spp must be at least 1".into());
         }
+        self.caustics.validate()?;
         if let Some(cam) = &self.camera {
             let all = cam.position.iter().chain(&cam.look_at).chain(&cam.up);
             if all.clone().any(|v| !v.is_finite()) {

@@ -5,6 +5,7 @@
 use glam::DVec3;
 
 use crate::geometry::Ray;
+use crate::photon::CausticMap;
 use crate::sampler::Rng;
 use crate::scene::{Light, Scene};
 use crate::settings::TextureFilter;
@@ -159,6 +160,8 @@ pub struct Tracer<'a> {
     pub shadow_rays: u32,
     /// The sample's glossy-lobe stream (see [`crate::sampler::Stream::Gloss`]).
     pub gloss_rng: Rng,
+    /// Caustic photons gathered at diffuse hits, when the render has them.
+    pub caustics: Option<&'a CausticMap>,
 }
 
 impl<'a> Tracer<'a> {
@@ -170,6 +173,7 @@ impl<'a> Tracer<'a> {
             radiance_rays: 0,
             shadow_rays: 0,
             gloss_rng: Rng::for_sample(0, 0, 0, 0),
+            caustics: None,
         }
     }
 
@@ -241,6 +245,9 @@ impl<'a> Tracer<'a> {
             let mut direct = scene.description.ambient * s.ambient;
             for light in &scene.lights {
                 direct += self.direct_light(light, &s, n, error_scale, ray.time, rng) * s.diffuse;
+            }
+            if let Some(map) = self.caustics {
+                direct += map.irradiance(s.position, n) * s.diffuse;
             }
             let mut color = s.texture * direct;
             let tint = s.texture * s.specular;

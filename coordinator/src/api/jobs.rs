@@ -323,7 +323,11 @@ pub async fn frames_tar(State(app): AppState, Path(id): Path<String>) -> ApiResu
             header.set_mtime(0);
             header.set_cksum();
             archive
-                .append_data(&mut header, format!("{stem}_{frame:04}.png"), png.as_slice())
+                .append_data(
+                    &mut header,
+                    format!("{stem}_{frame:04}.png"),
+                    png.as_slice(),
+                )
                 .map_err(|e| Failure::internal(format!("building the archive: {e}")))?;
         }
         let bytes = archive

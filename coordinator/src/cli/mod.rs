@@ -11,7 +11,7 @@ use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
 use tracer_core::settings::parse_vec3;
-use tracer_core::{CameraOverride, FrameRange, RenderSettings, TextureFilter};
+use tracer_core::{CameraOverride, CausticsSettings, FrameRange, RenderSettings, TextureFilter};
 use worker::protocol::{JobSpec, DEFAULT_TILE_SIZE};
 
 pub use submit::collect_submission;
@@ -77,6 +77,18 @@ pub struct SettingsArgs {
     /// Render this frame of an animated scene (0-based) [default: 0].
     #[arg(long)]
     pub frame: Option<u32>,
+    /// Caustics by photon mapping, even if the scene has no <caustics> element.
+    #[arg(long, conflicts_with = "no_caustics")]
+    pub caustics: bool,
+    /// No caustics, even if the scene asks for them.
+    #[arg(long)]
+    pub no_caustics: bool,
+    /// Caustic photons to emit (turns caustics on; overrides the scene's count).
+    #[arg(long, conflicts_with = "no_caustics")]
+    pub photons: Option<u32>,
+    /// Caustic gather radius in scene units (turns caustics on; overrides the scene's).
+    #[arg(long, conflicts_with = "no_caustics")]
+    pub photon_radius: Option<f64>,
     /// Tile edge in pixels.
     #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
     pub tile_size: u32,
@@ -112,6 +124,15 @@ impl SettingsArgs {
                     d.texture_filter
                 },
                 frame: self.frame.unwrap_or(d.frame),
+                caustics: CausticsSettings {
+                    enabled: if self.no_caustics {
+                        Some(false)
+                    } else {
+                        self.caustics.then_some(true)
+                    },
+                    photons: self.photons,
+                    radius: self.photon_radius,
+                },
             },
             frames: self.frames,
             tile_size: self.tile_size,
@@ -153,7 +174,10 @@ async fn download(
     output: &Path,
 ) -> Result<Vec<PathBuf>, String> {
     let Some(range) = job.spec.frames else {
-        let png = client.image(job.id).await.map_err(|e| submit::describe(&e))?;
+        let png = client
+            .image(job.id)
+            .await
+            .map_err(|e| submit::describe(&e))?;
         write_png(output, &png)?;
         return Ok(vec![output.to_path_buf()]);
     };

@@ -83,6 +83,8 @@ pub struct Scene {
     /// Whether any used material reflects glossily (the tracer then seeds the gloss stream).
     pub(crate) has_gloss: bool,
     pub stats: SceneStats,
+    /// The caustic photon map, built by the first renderer that needs it (`photon.rs`).
+    pub(crate) caustic_cache: crate::photon::CausticCache,
 }
 
 impl Scene {
@@ -318,6 +320,7 @@ impl Scene {
             },
             textures,
             world,
+            caustic_cache: Default::default(),
         })
     }
 }

@@ -185,6 +185,15 @@ pub struct ModelDesc {
     pub material: usize,
 }
 
+/// `<caustics photons="…" radius="…"/>`: caustic photon mapping on, with optional overrides
+/// of the photon count and gather radius (defaults in `photon.rs`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CausticsDesc {
+    pub photons: Option<u32>,
+    pub radius: Option<f64>,
+    pub pos: Pos,
+}
+
 /// A parsed, validated scene file. Building a renderable scene from it reads only the assets
 /// that [`SceneDescription::referenced_assets`] lists.
 #[derive(Clone, Debug, PartialEq)]
@@ -205,6 +214,8 @@ pub struct SceneDescription {
     pub environment: Option<EnvironmentDesc>,
     /// Frames the scene describes (frame k is time k).
     pub frames: u32,
+    /// Present when the scene asks for caustics.
+    pub caustics: Option<CausticsDesc>,
 }
 
 impl SceneDescription {
@@ -712,6 +723,47 @@ impl Parser<'_> {
             models,
             environment,
             frames,
+            caustics: self
+                .single(root, "caustics")?
+                .map(|el| self.caustics(el))
+                .transpose()?,
+        })
+    }
+
+    fn caustics(&self, el: &Element) -> Result<CausticsDesc, SceneError> {
+        let photons = match el.attr("photons") {
+            None => None,
+            Some(text) => {
+                let n = self.number(el, "photons")?;
+                let max = crate::photon::MAX_PHOTONS;
+                if n.fract() != 0.0 || n < 1.0 || n > max as f64 {
+                    return Err(self.error(
+                        el,
+                        format!(
+                            "in <caustics>, attribute 'photons' = \"{text}\" must be a whole number between 1 and {max}"
+                        ),
+                    ));
+                }
+                Some(n as u32)
+            }
+        };
+        let radius = match el.attr("radius") {
+            None => None,
+            Some(text) => {
+                let r = self.number(el, "radius")?;
+                if r <= 0.0 {
+                    return Err(self.error(
+                        el,
+                        format!("in <caustics>, attribute 'radius' = \"{text}\" must be positive"),
+                    ));
+                }
+                Some(r)
+            }
+        };
+        Ok(CausticsDesc {
+            photons,
+            radius,
+            pos: el.pos,
         })
     }
 

@@ -11,8 +11,9 @@ mod xml;
 pub use assets::{AssetSource, FsAssets, MemoryAssets};
 pub use build::{Environment, Light, Scene, SceneStats};
 pub use desc::{
-    parse_c_double, CameraDesc, EnvironmentDesc, Keyframe, LightDesc, MaterialDesc, MeshDesc,
-    ModelDesc, Motion, SceneDescription, SphereDesc, TransformDesc, TriangleDesc, VertexDesc,
+    parse_c_double, CameraDesc, CausticsDesc, EnvironmentDesc, Keyframe, LightDesc, MaterialDesc,
+    MeshDesc, ModelDesc, Motion, SceneDescription, SphereDesc, TransformDesc, TriangleDesc,
+    VertexDesc,
 };
 pub use error::SceneError;
 pub use obj::{parse_obj, smooth_normals, MeshData};

@@ -9,7 +9,9 @@ mod report;
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use tracer_core::settings::{numbered_path, parse_vec3};
-use tracer_core::{CameraOverride, FrameRange, RenderSettings, Renderer, Scene, TextureFilter};
+use tracer_core::{
+    CameraOverride, CausticsSettings, FrameRange, RenderSettings, Renderer, Scene, TextureFilter,
+};
 
 #[derive(Parser)]
 #[command(
@@ -96,6 +98,18 @@ pub struct SettingsArgs {
     /// Bilinear texture filtering instead of nearest texel.
     #[arg(long)]
     bilinear: bool,
+    /// Caustics by photon mapping, even if the scene has no <caustics> element.
+    #[arg(long, conflicts_with = "no_caustics")]
+    caustics: bool,
+    /// No caustics, even if the scene asks for them.
+    #[arg(long)]
+    no_caustics: bool,
+    /// Caustic photons to emit (turns caustics on; overrides the scene's count).
+    #[arg(long, conflicts_with = "no_caustics")]
+    photons: Option<u32>,
+    /// Caustic gather radius in scene units (turns caustics on; overrides the scene's).
+    #[arg(long, conflicts_with = "no_caustics")]
+    photon_radius: Option<f64>,
 }
 
 impl SettingsArgs {
@@ -120,6 +134,15 @@ impl SettingsArgs {
                 TextureFilter::Nearest
             },
             frame: 0,
+            caustics: CausticsSettings {
+                enabled: if self.no_caustics {
+                    Some(false)
+                } else {
+                    self.caustics.then_some(true)
+                },
+                photons: self.photons,
+                radius: self.photon_radius,
+            },
         }
     }
 }
@@ -249,7 +272,18 @@ fn render_frame(
     quiet: bool,
     started: Instant,
 ) -> Result<(), String> {
-    let renderer = Renderer::new(scene, settings)?;
+    // Inside the pool: building a caustic map uses the same threads as rendering.
+    let prepared = Instant::now();
+    let renderer = pool.install(|| Renderer::new(scene, settings))?;
+    if let Some(map) = renderer.caustics() {
+        eprintln!(
+            "caustics: {} photons emitted, {} stored, gather radius {}, built in {:.2} s",
+            map.emitted(),
+            map.len(),
+            map.radius(),
+            prepared.elapsed().as_secs_f64()
+        );
+    }
     let total = settings.width as u64 * settings.height as u64;
     let bar = if quiet || !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
         ProgressBar::hidden()
