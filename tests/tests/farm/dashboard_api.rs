@@ -186,8 +186,7 @@ async fn dashboard_routes_report_tiles_workers_and_events_and_resubmit() {
         let needle = format!("\"tile\":{tile},");
         let last = seen
             .lines()
-            .filter(|l| l.starts_with("data:") && l.contains(&needle))
-            .last()
+            .rfind(|l| l.starts_with("data:") && l.contains(&needle))
             .unwrap_or_else(|| panic!("no event for tile {tile}:\n{seen}"));
         assert!(last.contains("\"state\":\"done\""), "{last}");
     }
