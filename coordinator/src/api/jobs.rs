@@ -456,7 +456,7 @@ mod tests {
     fn a_scene_camera_pivots_on_its_view_axis_and_an_override_wins() {
         let text = r#"<scene><camera><fov v="0.9"/><near_clip v="0.1"/><far_clip v="100"/>
             <position x="0" y="0" z="10"/><orientation a="0" x="0" y="1" z="0"/>
-            </camera></scene>"#;
+            </camera><background_color r="0" g="0" b="0"/><refractive_index v="1"/></scene>"#;
         let desc = SceneDescription::parse(text, "t.scene").unwrap();
         let mut spec = JobSpec::default();
         let cam = job_camera(&desc, &spec);

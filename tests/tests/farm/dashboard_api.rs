@@ -136,7 +136,7 @@ async fn dashboard_routes_report_tiles_workers_and_events_and_resubmit() {
         ("{not json", "invalid JSON"),
         (r#"{"colour": 1}"#, "unknown field"),
         (r#"{"render": {"width": 0}}"#, "image size 0x600"),
-        (r#"{"tile_size": 2}"#, "tile"),
+        (r#"{"tile_size": 2}"#, "tile_size"),
         (
             r#"{"render": {"camera": {"position": [0,0,0], "look_at": [0,0,0]}}}"#,
             "camera",
