@@ -211,6 +211,16 @@ fn register_font() -> Result<(), String> {
     .map_err(|_| format!("{path} is not a usable font"))
 }
 
+/// A short axis label: log-scale ticks are arbitrary floats (0.30000000000000004…), so they
+/// are rounded to two significant digits.
+fn tick_label(v: f64) -> String {
+    if !v.is_finite() || v <= 0.0 {
+        return format!("{v}");
+    }
+    let digits = (1 - v.log10().floor() as i32).max(0) as usize;
+    format!("{v:.digits$}")
+}
+
 fn plot(scene: &Path, rows: &[Measurement]) -> Result<Vec<u8>, String> {
     register_font()?;
     let (w, h) = (900u32, 600u32);
@@ -256,6 +266,8 @@ fn plot(scene: &Path, rows: &[Measurement]) -> Result<Vec<u8>, String> {
             .configure_mesh()
             .x_desc("wall time (s)")
             .y_desc("RMSE")
+            .x_label_formatter(&|v| tick_label(*v))
+            .y_label_formatter(&|v| tick_label(*v))
             .label_style(("sans-serif", 16))
             .draw()
             .map_err(err)?;
@@ -293,6 +305,14 @@ fn plot(scene: &Path, rows: &[Measurement]) -> Result<Vec<u8>, String> {
 #[cfg(test)]
 mod tests {
     use super::csv_field;
+
+    #[test]
+    fn tick_labels_keep_two_significant_digits() {
+        assert_eq!(super::tick_label(0.30000000000000004), "0.30");
+        assert_eq!(super::tick_label(0.0123), "0.012");
+        assert_eq!(super::tick_label(2.0), "2.0");
+        assert_eq!(super::tick_label(40.0), "40");
+    }
 
     #[test]
     fn csv_fields_with_commas_or_quotes_are_quoted() {
