@@ -87,7 +87,7 @@ impl<'a> Renderer<'a> {
             c.far_clip,
             settings.width as f64 / settings.height as f64,
         )
-        .with_lens(c.aperture, c.focus_distance)
+        .with_lens(c.aperture, c.focus_at(time))
     }
 
     pub fn settings(&self) -> &RenderSettings {

@@ -100,6 +100,63 @@ fn depth_of_field_blurs_only_what_is_off_the_focal_plane() {
     assert!(blur_ratio(&image, &sharp, 48, 96) < 1.3);
 }
 
+#[test]
+fn a_focus_pull_moves_the_focal_plane_frame_by_frame() {
+    let body = format!(
+        "{FLAT}\n    <sphere material=\"flat\"><position x=\"-0.9\" y=\"0\" z=\"0\"/><radius v=\"0.6\"/></sphere>\n    <sphere material=\"flat\"><position x=\"4.5\" y=\"0\" z=\"-20\"/><radius v=\"3\"/></sphere>\n    <animation frames=\"9\"/>"
+    );
+    let lens = |focus: &str| format!("        <aperture v=\"0.25\"/>\n{focus}");
+    // Focus on the near ball, hold it to frame 2, pull to the far ball by frame 6.
+    let pull = build(
+        &scene(
+            &lens("        <focus_distance v=\"5\"/>\n        <focus_key time=\"2\" v=\"5\"/>\n        <focus_key time=\"6\" v=\"25\"/>"),
+            &body,
+        ),
+        &MemoryAssets::default(),
+    );
+    let camera = &pull.description.camera;
+    assert_eq!(
+        [0.0, 2.0, 4.0, 6.0, 8.0].map(|t| camera.focus_at(t)),
+        [5.0, 5.0, 15.0, 25.0, 25.0]
+    );
+    // Each frame is the still with that focus distance, bit for bit.
+    for (frame, focus) in [(0, 5.0), (4, 15.0), (8, 25.0)] {
+        let still = build(
+            &scene(
+                &lens(&format!("        <focus_distance v=\"{focus}\"/>")),
+                &body,
+            ),
+            &MemoryAssets::default(),
+        );
+        let s = RenderSettings {
+            frame,
+            ..settings(48, 32, 4)
+        };
+        assert!(
+            render(&pull, &s) == render(&still, &s),
+            "frame {frame} must be the still focused at {focus}"
+        );
+    }
+    // A focus key needs a lens, and keys must move forward in time.
+    for (extra, needle) in [
+        (
+            "        <focus_key time=\"1\" v=\"5\"/>".to_string(),
+            "needs an <aperture>",
+        ),
+        (
+            lens("        <focus_distance v=\"5\"/>\n        <focus_key time=\"0\" v=\"6\"/>"),
+            "must come after",
+        ),
+        (
+            lens("        <focus_distance v=\"5\"/>\n        <focus_key time=\"1\" v=\"-2\"/>"),
+            "must be positive",
+        ),
+    ] {
+        let err = SceneDescription::parse(&scene(&extra, &body), "fx.scene").unwrap_err();
+        assert!(err.to_string().contains(needle), "{err}");
+    }
+}
+
 /// A mirror ball in front of a striped wall, with `gloss` as the mirror's extra element.
 fn mirror_scene(gloss: &str) -> String {
     scene(

@@ -18,6 +18,9 @@ pub struct CameraDesc {
     pub aperture: f64,
     /// Distance along the view direction of the plane in focus (used when aperture > 0).
     pub focus_distance: f64,
+    /// A focus pull: (time in frames, focus distance) keys after time 0, where
+    /// `focus_distance` is the key; interpolated linearly, held after the last.
+    pub focus_keys: Vec<(f64, f64)>,
     /// Shutter interval in frames after the frame's start; open == close is an instant.
     pub shutter: [f64; 2],
     /// Keyed camera path; its scale is unused.
@@ -25,6 +28,19 @@ pub struct CameraDesc {
 }
 
 impl CameraDesc {
+    /// The focus distance at `time` (in frames).
+    pub fn focus_at(&self, time: f64) -> f64 {
+        let mut previous = (0.0, self.focus_distance);
+        for &(t, focus) in &self.focus_keys {
+            if time < t {
+                let s = ((time - previous.0) / (t - previous.0)).clamp(0.0, 1.0);
+                return previous.1 + s * (focus - previous.1);
+            }
+            previous = (t, focus);
+        }
+        previous.1
+    }
+
     /// Position and orientation at `time` (in frames).
     pub fn at(&self, time: f64) -> (DVec3, DQuat) {
         let base = TransformDesc {
@@ -837,6 +853,33 @@ impl Parser<'_> {
             }
             None => 1.0,
         };
+        let mut focus_keys: Vec<(f64, f64)> = Vec::new();
+        for key in el.children_named("focus_key") {
+            if aperture <= 0.0 {
+                return Err(self.error(
+                    key,
+                    "a <focus_key> pulls the focus of a thin lens: the camera needs an <aperture> above 0",
+                ));
+            }
+            let time = self.number(key, "time")?;
+            let previous = focus_keys.last().map_or(0.0, |k| k.0);
+            if time <= previous {
+                return Err(self.error(
+                    key,
+                    format!(
+                        "in <focus_key>, time {time} must come after the previous key's time {previous} (<focus_distance> is the key at time 0)"
+                    ),
+                ));
+            }
+            let focus = self.number(key, "v")?;
+            if focus <= 0.0 {
+                return Err(self.error(
+                    key,
+                    format!("in <focus_key>, the focus distance must be positive, not {focus}"),
+                ));
+            }
+            focus_keys.push((time, focus));
+        }
         let shutter = match self.single(el, "shutter")? {
             Some(sh) => {
                 let open = self.number(sh, "open")?;
@@ -867,6 +910,7 @@ impl Parser<'_> {
             orientation,
             aperture,
             focus_distance,
+            focus_keys,
             shutter,
             motion,
         })
