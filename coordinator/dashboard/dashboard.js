@@ -585,6 +585,12 @@ function specFromForm() {
   }
   const spec = { render, tile_size: number('tile-size') };
   if ($('job-name').value.trim()) spec.name = $('job-name').value.trim();
+  const frames = $('frames').value.trim();
+  if (frames) {
+    const match = /^(\d+)\s*\.\.\s*(\d+)$/.exec(frames);
+    if (!match) throw new Error(`frames: expected A..B, got "${frames}"`);
+    spec.frames = { first: Number(match[1]), last: Number(match[2]) };
+  }
   return spec;
 }
 
