@@ -353,7 +353,9 @@ impl World {
 
     /// The nearest hit with t in (t_min, t_max); `ray.dir` need not be unit length.
     pub fn intersect(&self, ray: &Ray, t_min: f64, t_max: f64) -> Option<Hit> {
-        let world_tri_ray = TriangleRay::new(ray);
+        // Set up on the first scene triangle only: rays that meet none (every ray of a
+        // mesh-only scene) skip its divisions.
+        let mut world_tri_ray = None;
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
         self.traverse_top::<true>(ray, &mut t_max, |range, t_max| {
@@ -380,8 +382,8 @@ impl World {
                     }
                     Object::Triangle(i) => {
                         let [a, b, c] = self.triangles[i as usize].positions;
-                        if let Some(h) = intersect_triangle(&world_tri_ray, a, b, c, t_min, *t_max)
-                        {
+                        let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
+                        if let Some(h) = intersect_triangle(tri_ray, a, b, c, t_min, *t_max) {
                             *t_max = h.t;
                             best = Some(Hit {
                                 t: h.t,
@@ -482,7 +484,7 @@ impl World {
 
     /// Whether anything lies along the ray with t in (0, t_max).
     pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
-        let world_tri_ray = TriangleRay::new(ray);
+        let mut world_tri_ray = None;
         let mut t_limit = t_max;
         self.traverse_top::<false>(ray, &mut t_limit, |range, t_max| {
             for slot in range {
@@ -495,7 +497,8 @@ impl World {
                     }
                     Object::Triangle(i) => {
                         let [a, b, c] = self.triangles[i as usize].positions;
-                        intersect_triangle(&world_tri_ray, a, b, c, 0.0, *t_max).is_some()
+                        let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
+                        intersect_triangle(tri_ray, a, b, c, 0.0, *t_max).is_some()
                     }
                     Object::Model(i) => {
                         let model = &self.models[i as usize];

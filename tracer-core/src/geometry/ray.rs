@@ -11,6 +11,7 @@ pub struct Ray {
 }
 
 impl Ray {
+    #[inline(always)]
     pub fn new(origin: DVec3, dir: DVec3) -> Self {
         // A zero component would give 1/0 = inf, and inf·0 = NaN in the slab test when the origin
         // lies on a slab plane; a huge finite reciprocal keeps the test well defined.
@@ -60,6 +61,7 @@ pub struct TriangleRay {
 }
 
 impl TriangleRay {
+    #[inline(always)]
     pub fn new(ray: &Ray) -> Self {
         let a = ray.dir.abs();
         let kz = if a.x >= a.y && a.x >= a.z {

@@ -27,6 +27,8 @@ impl Transform {
     }
 
     /// The ray in local space. The direction is not re-normalised, so distances t agree.
+    /// Inlined: it runs once per ray and instance, and a call cost more than its arithmetic.
+    #[inline(always)]
     pub fn ray_to_local(&self, ray: &Ray) -> Ray {
         Ray::new(
             self.to_local.transform_point3(ray.origin),
