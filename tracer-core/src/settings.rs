@@ -48,6 +48,16 @@ pub struct CausticsSettings {
 }
 
 impl CausticsSettings {
+    /// The settings the command-line flags ask for: `--caustics`, `--no-caustics` (which
+    /// wins), `--photons N` and `--photon-radius R`.
+    pub fn from_flags(on: bool, off: bool, photons: Option<u32>, radius: Option<f64>) -> Self {
+        Self {
+            enabled: if off { Some(false) } else { on.then_some(true) },
+            photons,
+            radius,
+        }
+    }
+
     pub fn is_default(&self) -> bool {
         *self == Self::default()
     }

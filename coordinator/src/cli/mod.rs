@@ -124,15 +124,12 @@ impl SettingsArgs {
                     d.texture_filter
                 },
                 frame: self.frame.unwrap_or(d.frame),
-                caustics: CausticsSettings {
-                    enabled: if self.no_caustics {
-                        Some(false)
-                    } else {
-                        self.caustics.then_some(true)
-                    },
-                    photons: self.photons,
-                    radius: self.photon_radius,
-                },
+                caustics: CausticsSettings::from_flags(
+                    self.caustics,
+                    self.no_caustics,
+                    self.photons,
+                    self.photon_radius,
+                ),
             },
             frames: self.frames,
             tile_size: self.tile_size,

@@ -31,25 +31,26 @@ async fn wait_for_workers(url: &str, n: usize) {
     }
 }
 
+/// A coordinator and two one-thread worker processes, logging under `dir`, once both have
+/// asked for work.
+async fn two_worker_farm(dir: &std::path::Path) -> (Coordinator, [Proc; 2]) {
+    let coord = start_coordinator(&dir.join("data"), 0, &[], dir.join("c.log"));
+    let workers = ["w1", "w2"].map(|name| {
+        start_worker(
+            &coord.url,
+            name,
+            &["--threads", "1"],
+            dir.join(format!("{name}.log")),
+        )
+    });
+    wait_for_workers(&coord.url, 2).await;
+    (coord, workers)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_workers_render_stacks_exactly_like_the_tracer() {
     let tmp = tempfile::tempdir().unwrap();
-    let coord = start_coordinator(&tmp.path().join("data"), 0, &[], tmp.path().join("c.log"));
-    let workers = [
-        start_worker(
-            &coord.url,
-            "w1",
-            &["--threads", "1"],
-            tmp.path().join("w1.log"),
-        ),
-        start_worker(
-            &coord.url,
-            "w2",
-            &["--threads", "1"],
-            tmp.path().join("w2.log"),
-        ),
-    ];
-    wait_for_workers(&coord.url, 2).await;
+    let (coord, workers) = two_worker_farm(tmp.path()).await;
     let client = Client::new(&coord.url, None).unwrap();
     let scene = course_scene("stacks.scene");
     // An odd tile size leaves ragged tiles at the right and bottom edges.
@@ -164,22 +165,7 @@ fn coordinator_render_matches_the_tracer_on_the_showcase_scene() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_frame_range_job_yields_each_frame_exactly_like_the_tracer() {
     let tmp = tempfile::tempdir().unwrap();
-    let coord = start_coordinator(&tmp.path().join("data"), 0, &[], tmp.path().join("c.log"));
-    let _workers = [
-        start_worker(
-            &coord.url,
-            "w1",
-            &["--threads", "1"],
-            tmp.path().join("w1.log"),
-        ),
-        start_worker(
-            &coord.url,
-            "w2",
-            &["--threads", "1"],
-            tmp.path().join("w2.log"),
-        ),
-    ];
-    wait_for_workers(&coord.url, 2).await;
+    let (coord, _workers) = two_worker_farm(tmp.path()).await;
     let client = Client::new(&coord.url, None).unwrap();
     let scene = own_scene("motion_blur.scene");
     let mut spec = small_spec(2, 16);

@@ -134,15 +134,12 @@ impl SettingsArgs {
                 TextureFilter::Nearest
             },
             frame: 0,
-            caustics: CausticsSettings {
-                enabled: if self.no_caustics {
-                    Some(false)
-                } else {
-                    self.caustics.then_some(true)
-                },
-                photons: self.photons,
-                radius: self.photon_radius,
-            },
+            caustics: CausticsSettings::from_flags(
+                self.caustics,
+                self.no_caustics,
+                self.photons,
+                self.photon_radius,
+            ),
         }
     }
 }
