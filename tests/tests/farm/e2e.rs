@@ -135,13 +135,10 @@ fn coordinator_render_matches_the_tracer_on_the_showcase_scene() {
     let spec = small_spec(4, 64);
     let tracer = tracer_png(&scene, &spec, tmp.path());
     for workers in ["1", "3"] {
-        let out = tmp.path().join(format!("farm-{workers}.png"));
-        let status = std::process::Command::new(&bins().coordinator)
-            .arg("render")
-            .arg(&scene)
-            .arg("-o")
-            .arg(&out)
-            .args([
+        let png = coordinator_render(
+            &scene,
+            &tmp.path().join(format!("farm-{workers}.png")),
+            &[
                 "--width",
                 "160",
                 "--height",
@@ -150,13 +147,12 @@ fn coordinator_render_matches_the_tracer_on_the_showcase_scene() {
                 "4",
                 "--workers",
                 workers,
-            ])
-            .args(["--tile-size", "24"])
-            .status()
-            .unwrap();
-        assert!(status.success());
+                "--tile-size",
+                "24",
+            ],
+        );
         assert!(
-            std::fs::read(&out).unwrap() == tracer,
+            png == tracer,
             "coordinator render --workers {workers} differs from tracer render"
         );
     }
@@ -271,20 +267,19 @@ fn coordinator_render_matches_the_tracer_with_caustics() {
         "caustics changed nothing"
     );
     for workers in ["1", "3"] {
-        let out = tmp.path().join(format!("farm-{workers}.png"));
-        let status = std::process::Command::new(&bins().coordinator)
-            .arg("render")
-            .arg(&scene)
-            .arg("-o")
-            .arg(&out)
-            .args(size)
-            .args(caustics)
-            .args(["--workers", workers, "--tile-size", "32"])
-            .status()
-            .unwrap();
-        assert!(status.success());
+        let args = [
+            &size[..],
+            &caustics[..],
+            &["--workers", workers, "--tile-size", "32"],
+        ]
+        .concat();
+        let png = coordinator_render(
+            &scene,
+            &tmp.path().join(format!("farm-{workers}.png")),
+            &args,
+        );
         assert!(
-            std::fs::read(&out).unwrap() == tracer,
+            png == tracer,
             "coordinator render --workers {workers} differs from tracer render with caustics"
         );
     }

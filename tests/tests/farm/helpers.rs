@@ -227,6 +227,20 @@ pub fn tracer_png(scene: &Path, spec: &JobSpec, out_dir: &Path) -> Vec<u8> {
     std::fs::read(out).unwrap()
 }
 
+/// `coordinator render scene -o out [args]` (the embedded farm); the PNG it wrote.
+pub fn coordinator_render(scene: &Path, out: &Path, args: &[&str]) -> Vec<u8> {
+    let status = Command::new(&bins().coordinator)
+        .arg("render")
+        .arg(scene)
+        .arg("-o")
+        .arg(out)
+        .args(args)
+        .status()
+        .unwrap();
+    assert!(status.success(), "coordinator render {args:?} failed");
+    std::fs::read(out).unwrap()
+}
+
 /// A small job: 160x120 of `spp` samples in `tile`-pixel tiles.
 pub fn small_spec(spp: u32, tile: u32) -> JobSpec {
     let mut spec = JobSpec::default();
