@@ -10,9 +10,9 @@ use axum::extract::{ConnectInfo, Path, State};
 use axum::http::{Extensions, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
-use worker::protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
+use protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
 
-use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
+use super::{blocking, parse_id, parse_json, ApiResult, AppState};
 use crate::farm::FarmError;
 
 /// Counts 409s for the metrics on the way out.
@@ -36,14 +36,11 @@ pub async fn lease(
     body: Bytes,
 ) -> ApiResult<Response> {
     let req: LeaseRequest = parse_json(&body)?;
-    if req.worker.is_empty() || req.worker.len() > 200 {
-        return Err(Failure::bad_request("a worker name is 1 to 200 bytes"));
-    }
     let farm = &app.farm;
     // Present when the server was started with connection info (it always is but in tests
     // that build the router alone).
     if let Some(ConnectInfo(peer)) = extensions.get::<ConnectInfo<SocketAddr>>() {
-        farm.worker_address(&req.worker, peer.to_string());
+        farm.worker_address(req.worker_id, peer.to_string());
     }
     let start = Instant::now();
     let wait = Duration::from_millis(req.wait_ms).min(farm.config().max_poll_wait);
@@ -56,7 +53,7 @@ pub async fn lease(
         if farm.is_stopping() {
             break;
         }
-        if let Some(lease) = farm.lease(&req.worker)? {
+        if let Some(lease) = farm.lease(req.worker_id)? {
             farm.metrics.observe_lease_latency(start.elapsed());
             return Ok(Json(lease).into_response());
         }
@@ -92,16 +89,7 @@ pub async fn complete(
     let id = parse_id("lease", &id)?;
     let farm = app.farm.clone();
     let result = blocking(move || Ok(farm.complete(id, &body))).await?;
-    let (done, finished_job) = counted(&app, result)?;
-    if let Some(job_id) = finished_job {
-        let farm = app.farm.clone();
-        tokio::task::spawn_blocking(move || {
-            if let Err(e) = farm.assemble(job_id) {
-                tracing::error!("job {job_id}: assembling the image failed: {e}");
-            }
-        });
-    }
-    Ok(Json(done))
+    Ok(Json(counted(&app, result)?))
 }
 
 pub async fn fail(

@@ -51,6 +51,12 @@ pub struct ServeArgs {
     /// Largest ray depth.
     #[arg(long, default_value_t = Limits::default().max_depth)]
     pub max_depth: u32,
+    /// Most tiles in one job, every frame counted (frames × tiles per frame).
+    #[arg(long, default_value_t = Limits::default().max_job_tiles)]
+    pub max_job_tiles: u64,
+    /// Most worker identities kept; registering beyond it forgets the longest-silent idle one.
+    #[arg(long, default_value_t = FarmConfig::default().max_workers)]
+    pub max_workers: usize,
 }
 
 fn secs(v: f64, what: &str) -> Result<Duration, String> {
@@ -73,8 +79,10 @@ impl ServeArgs {
                 max_dimension: self.max_dimension,
                 max_spp: self.max_spp,
                 max_depth: self.max_depth,
+                max_job_tiles: self.max_job_tiles,
                 ..Limits::default()
             },
+            max_workers: self.max_workers.max(1),
             ..FarmConfig::default()
         };
         if config.heartbeat * 2 > config.lease_timeout {
