@@ -753,4 +753,98 @@ mod tests {
         assert!(s.workers.contains(1) && !s.workers.contains(2));
         assert_eq!(s.live(lease).unwrap().worker_id, 1);
     }
+
+    #[test]
+    fn new_to_queued_stores_the_job_before_it_is_listed() {
+        let (mut s, first) = state();
+        let stored = StoredJob {
+            id: 0,
+            name: "b".into(),
+            scene_file: "b.scene".into(),
+            scene_hash: "0".repeat(64),
+            spec: s.jobs[&first].spec.clone(),
+            state: JobState::Queued,
+            error: None,
+            created_ms: 0,
+            started_ms: None,
+            finished_ms: None,
+            assets: vec![],
+            tiles_done: vec![],
+            failures: vec![],
+        };
+        let job = || Job {
+            tiles: TileBook::new(4),
+            ..job_like(&s.jobs[&first])
+        };
+        let (attempt, retry) = (job(), job());
+        s.db.fail_writes(true);
+        assert!(s.add_job(&stored, attempt).is_err());
+        s.db.fail_writes(false);
+        assert_eq!(s.jobs.len(), 1, "a job that was not stored is not listed");
+        let id = s.add_job(&stored, retry).unwrap();
+        assert_eq!(s.jobs[&id].tiles.queued().collect::<Vec<_>>(), [0, 1, 2, 3]);
+        assert_eq!(tile_state(&s, id, 3), TileState::Queued);
+    }
+
+    /// A copy of a job's description with an empty tile book.
+    fn job_like(job: &Job) -> Job {
+        Job {
+            id: 0,
+            name: job.name.clone(),
+            scene_file: job.scene_file.clone(),
+            scene_hash: job.scene_hash.clone(),
+            spec: job.spec.clone(),
+            state: job.state,
+            error: None,
+            created_ms: 0,
+            started_ms: None,
+            finished_ms: None,
+            assets: vec![],
+            grid: job.grid,
+            tiles: TileBook::new(0),
+            failures: vec![],
+            tile_ms_total: 0,
+            tiles_timed: 0,
+            assembling: false,
+        }
+    }
+
+    #[test]
+    fn running_to_done_with_a_failed_write_stays_running() {
+        let (mut s, job) = state();
+        for tile in 0..4 {
+            let lease = s.grant(job, tile, 1, 10, TIMEOUT).unwrap();
+            s.complete(lease, 20).unwrap();
+        }
+        s.db.fail_writes(true);
+        assert!(s.mark_done(job, 30).is_err());
+        s.db.fail_writes(false);
+        assert_eq!(s.jobs[&job].state, JobState::Running);
+        s.mark_done(job, 30).unwrap();
+        assert_eq!(s.jobs[&job].state, JobState::Done);
+        assert!(matches!(s.mark_done(job, 40), Err(FarmError::Conflict(_))));
+    }
+
+    #[test]
+    fn failed_to_running_with_a_failed_write_changes_nothing() {
+        let (mut s, job) = state();
+        let a = s.grant(job, 0, 1, 10, TIMEOUT).unwrap();
+        s.fail(a, "scene", true, 20, LIMITS).unwrap();
+        let before = snapshot(&s);
+        s.db.fail_writes(true);
+        assert!(s.retry(job).is_err());
+        s.db.fail_writes(false);
+        assert_eq!(snapshot(&s), before);
+        assert_eq!(s.jobs[&job].state, JobState::Failed);
+    }
+
+    #[test]
+    fn registering_with_a_failed_write_issues_nothing() {
+        let (mut s, _) = state();
+        s.db.fail_writes(true);
+        assert!(s.register("w", 5, 100).is_err());
+        s.db.fail_writes(false);
+        assert_eq!(s.workers.len(), 2);
+        assert_eq!(s.register("w", 5, 100).unwrap().worker_id, 3);
+    }
 }
