@@ -4,8 +4,10 @@
 //! - [`client`]: a typed client for that API (workers, `coordinator submit`, tests).
 //! - [`scenes`]: each job's scene fetched and built once, shared by in-process workers.
 //! - [`run`]: the pull loop: lease, render with heartbeats, complete; back-off and hand-back.
+//! - [`health`]: liveness and readiness probes over plain HTTP (`--health-listen`).
 
 pub mod client;
+pub mod health;
 pub mod protocol;
 pub mod run;
 pub mod scenes;
