@@ -13,6 +13,7 @@ const state = {
   rows: new Map(), // id → {row, errorRow, cells}
   workers: [],
   selected: null, // job id
+  following: true, // until the user picks a job, the page shows the one rendering
   tiles: [], // the selected job's TileInfo, by tile index
   frame: null, // the frame shown, for a frame-range job
   camera: null, // {position, look_at, up}: where the viewpoint controls have moved to
@@ -104,8 +105,9 @@ async function resync() {
   state.rows.clear();
   document.querySelector('#jobs tbody').replaceChildren();
   // The selected job's tiles and preview reload as its info comes in again.
-  for (const job of jobs) onJob(job);
+  for (const job of jobs) onJob(job, true);
   renderWorkers();
+  follow();
 }
 
 async function followEvents() {
@@ -181,12 +183,14 @@ function jobTitle(job) {
 
 // ---------------------------------------------------------------- jobs
 
-function onJob(job) {
+// `loading`: one of a whole list, which is followed once it is all in.
+function onJob(job, loading = false) {
   const before = state.jobs.get(job.id);
   state.jobs.set(job.id, job);
   state.seenAt.set(job.id, Date.now());
   renderJob(job);
   $('no-jobs').hidden = state.jobs.size > 0;
+  if (!loading && (!before || before.state !== job.state)) follow();
   if (job.id !== state.selected) return;
   $('job-error').textContent = job.error || '';
   if (!before || before.state !== job.state) loadTiles(job.id);
@@ -224,7 +228,7 @@ function createJobRow(id) {
   const errorRow = el('tr', { id: 'job-error-' + id }, errorCell);
   cells.error = errorCell;
   row.addEventListener('click', (ev) => {
-    if (!(ev.target instanceof HTMLButtonElement)) select(id);
+    if (!(ev.target instanceof HTMLButtonElement)) pick(id);
   });
   cells.cancel.addEventListener('click', () => jobAction(`/jobs/${id}`, 'DELETE'));
   cells.retry.addEventListener('click', () => jobAction(`/jobs/${id}/retry`, 'POST'));
@@ -274,7 +278,7 @@ async function jobAction(path, method, opensJob = false) {
   try {
     const job = await (await api(path, { method })).json();
     onJob(job);
-    if (opensJob) select(job.id);
+    if (opensJob) pick(job.id);
   } catch (e) {
     if (!(e instanceof Unauthorized)) $('action-error').textContent = e.message;
   }
@@ -303,6 +307,24 @@ function renderWorkers() {
 }
 
 // ---------------------------------------------------------------- preview and tile map
+
+// A job the user chose (a click, a submission, a new view): the page stops following the farm.
+function pick(id) {
+  state.following = false;
+  select(id);
+}
+
+// Until the user picks a job, shows the job rendering now (the oldest, if several), else the
+// next to run, else the newest: whoever opens the page sees an image without a click.
+function follow() {
+  if (!state.following) return;
+  const jobs = [...state.jobs.values()].sort((a, b) => a.id - b.id);
+  const choice =
+    jobs.find((j) => j.state === 'running') ||
+    jobs.find((j) => j.state === 'queued') ||
+    (state.selected == null ? jobs[jobs.length - 1] : null);
+  if (choice && choice.id !== state.selected) select(choice.id);
+}
 
 function select(id) {
   const job = state.jobs.get(id);
@@ -524,7 +546,7 @@ async function renderView(quick) {
     });
     const created = await resp.json();
     onJob(created);
-    select(created.id);
+    pick(created.id);
   } catch (e) {
     if (!(e instanceof Unauthorized)) $('view-camera').textContent = 'refused: ' + e.message;
   }
@@ -635,7 +657,7 @@ async function submitScene(ev) {
     const job = await (await api('/jobs', { method: 'POST', body: form })).json();
     $('submit-status').textContent = `submitted as job ${job.id}`;
     onJob(job);
-    select(job.id);
+    pick(job.id);
   } catch (e) {
     $('submit-status').textContent = '';
     if (!(e instanceof Unauthorized)) $('submit-error').textContent = describeRefusal(e);

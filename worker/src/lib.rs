@@ -3,7 +3,9 @@
 //!
 //! - [`scenes`]: each job's scene fetched and built once, shared by in-process workers.
 //! - [`run`]: the pull loop: lease, render with heartbeats, complete; back-off and hand-back.
+//! - [`health`]: liveness and readiness probes over plain HTTP (`--health-listen`).
 
+pub mod health;
 pub mod run;
 pub mod scenes;
 

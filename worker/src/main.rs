@@ -30,6 +30,9 @@ struct Args {
     /// Longest pause between retries while the coordinator is unreachable, in seconds.
     #[arg(long, default_value_t = 5.0)]
     max_backoff: f64,
+    /// Serve liveness (GET /livez) and readiness (GET /readyz) probes on this address.
+    #[arg(long)]
+    health_listen: Option<String>,
 }
 
 fn main() -> ExitCode {
@@ -56,6 +59,17 @@ fn main() -> ExitCode {
                 return ExitCode::from(2);
             }
         };
+        if let Some(addr) = &args.health_listen {
+            match tokio::net::TcpListener::bind(addr).await {
+                Ok(listener) => {
+                    tokio::spawn(worker::health::serve(listener, client.clone()));
+                }
+                Err(e) => {
+                    eprintln!("worker: cannot listen on {addr} for health probes: {e}");
+                    return ExitCode::from(2);
+                }
+            }
+        }
         let mut config = WorkerConfig::new(name.clone(), threads);
         config.max_backoff = Duration::from_secs_f64(args.max_backoff.max(0.1));
         let worker = match Worker::new(client, config, SceneCache::new()) {

@@ -1,6 +1,6 @@
 //! `coordinator serve`: a long-running coordinator for a farm of separate workers.
 
-use std::io::Write;
+use std::io::{IsTerminal, Write};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -92,6 +92,18 @@ impl ServeArgs {
     }
 }
 
+/// `text` percent-encoded for a URL fragment (the dashboard decodes it).
+fn fragment(text: &str) -> String {
+    text.bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'.' | b'_' | b'~' => {
+                (b as char).to_string()
+            }
+            _ => format!("%{b:02X}"),
+        })
+        .collect()
+}
+
 /// Refuses to expose an unauthenticated coordinator beyond this machine.
 pub fn check_exposure(addr: SocketAddr, token: Option<&str>, insecure: bool) -> Result<(), String> {
     if token.is_some_and(str::is_empty) {
@@ -152,7 +164,13 @@ pub fn run(args: ServeArgs) -> ExitCode {
         // may close the pipe after it: a failed write must not stop the server.
         let mut out = std::io::stdout().lock();
         let _ = writeln!(out, "listening on http://{local}");
-        let _ = writeln!(out, "dashboard: http://{local}/");
+        // The fragment hands the page the token without sending it to the server; only on a
+        // terminal, so that service logs (journald, kubectl logs) never record the token.
+        match args.token.as_deref().filter(|_| out.is_terminal()) {
+            Some(t) => writeln!(out, "dashboard: http://{local}/#token={}", fragment(t)),
+            None => writeln!(out, "dashboard: http://{local}/"),
+        }
+        .ok();
         let _ = out.flush();
         drop(out);
         tracing::info!(
@@ -192,5 +210,11 @@ mod tests {
         assert!(check_exposure(any, Some("t"), false).is_ok());
         assert!(check_exposure(any, None, true).is_ok());
         assert!(check_exposure(lo, Some(""), false).is_err());
+    }
+
+    #[test]
+    fn the_dashboard_fragment_carries_any_token() {
+        assert_eq!(fragment("Ab9-._~"), "Ab9-._~");
+        assert_eq!(fragment("a+b/c= %#é"), "a%2Bb%2Fc%3D%20%25%23%C3%A9");
     }
 }

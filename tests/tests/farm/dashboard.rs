@@ -1,7 +1,8 @@
 //! The dashboard in a real browser: headless Chromium driven through chromedriver submits a
 //! course scene through the page's form, watches it reach 100%, checks that the preview shows
 //! exactly the job's PNG, cancels a second job, orbits the camera into a new job, shows a scene
-//! error inline, and saves screenshots under `target/test-artifacts/`.
+//! error inline, opens afresh by a `#token=` URL on the job rendering, and saves screenshots
+//! under `target/test-artifacts/`. Also: what `coordinator serve` prints for the page.
 //!
 //! Skips (with a message) when no Chromium or chromedriver is installed, unless
 //! `TESSERA_REQUIRE_CHROMIUM=1`, which CI sets.
@@ -419,5 +420,117 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     )
     .await;
     screenshot(&browser, &artifacts.join("dashboard.png")).await;
+
+    // Opened afresh, by the `#token=` URL `coordinator serve` prints on a terminal, the page
+    // shows the job rendering, not the newest (queued behind it) and not none.
+    let mut long = small_spec(64, 40);
+    (long.render.width, long.render.height) = (480, 360);
+    let d = submit(&client, &cube, long).await.id;
+    let e = submit(&client, &cube, small_spec(1, 16)).await.id;
+    wait_until(&client, d, Duration::from_secs(30), |j| {
+        j.state == JobState::Running
+    })
+    .await;
+    browser
+        .execute("sessionStorage.clear(); return null;", vec![])
+        .await
+        .unwrap();
+    browser
+        .goto(&format!("{}/#token={TOKEN}", coord.url))
+        .await
+        .unwrap();
+    browser.refresh().await.unwrap();
+    wait_js(
+        &browser,
+        "document.getElementById('connection').textContent",
+        |v| v == "live",
+    )
+    .await;
+    wait_js(
+        &browser,
+        "document.getElementById('preview-title').textContent",
+        |v| {
+            v.as_str()
+                .is_some_and(|t| t.starts_with(&format!("Job {d}:")))
+        },
+    )
+    .await;
+    wait_js(
+        &browser,
+        &format!("document.getElementById('preview').dataset.job === '{d}'"),
+        |v| v == true,
+    )
+    .await;
+    assert_eq!(client.job(e).await.unwrap().state, JobState::Queued);
+    assert_eq!(
+        browser.current_url().await.unwrap().fragment(),
+        None,
+        "the token is taken out of the address bar"
+    );
+    for id in [d, e] {
+        client.cancel(id).await.unwrap();
+    }
     browser.close().await.unwrap();
+}
+
+/// Reads `coordinator serve`'s stdout until its dashboard line.
+fn dashboard_line(mut cmd: Command, log: PathBuf) -> String {
+    use std::io::{BufRead, BufReader};
+    cmd.stdout(std::process::Stdio::piped());
+    let mut proc = Proc::spawn(cmd, log);
+    let stdout = proc.child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            if line.contains("dashboard: ") {
+                let _ = tx.send(line.trim().to_string());
+                break;
+            }
+        }
+    });
+    let line = rx
+        .recv_timeout(Duration::from_secs(20))
+        .unwrap_or_else(|_| panic!("no dashboard line: {}", proc.log_text()));
+    line[line.find("dashboard: ").unwrap()..].to_string()
+}
+
+#[test]
+fn serve_hands_the_dashboard_its_token_on_a_terminal_only() {
+    let tmp = tempfile::tempdir().unwrap();
+    let serve = |dir: &str| {
+        [
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--data-dir",
+            tmp.path().join(dir).to_str().unwrap(),
+            "--token",
+            "a+b/c=",
+        ]
+        .map(String::from)
+    };
+    // Through a pipe (a service's log): the URL without the token.
+    let mut piped = Command::new(&bins().coordinator);
+    piped.args(serve("piped"));
+    let line = dashboard_line(piped, tmp.path().join("piped.log"));
+    assert!(
+        line.starts_with("dashboard: http://127.0.0.1:") && line.ends_with('/'),
+        "{line}"
+    );
+    // On a terminal (util-linux `script` gives it one): the token, percent-encoded.
+    if Command::new("script").arg("--version").output().is_err() {
+        eprintln!("skipping the terminal half: no `script` (util-linux)");
+        return;
+    }
+    let command: Vec<String> = std::iter::once(bins().coordinator.display().to_string())
+        .chain(serve("tty"))
+        .collect();
+    let mut tty = Command::new("script");
+    tty.args(["-qfec", &command.join(" "), "/dev/null"]);
+    let line = dashboard_line(tty, tmp.path().join("tty.log"));
+    assert!(
+        line.starts_with("dashboard: http://127.0.0.1:") && line.ends_with("/#token=a%2Bb%2Fc%3D"),
+        "{line}"
+    );
 }
