@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use tracer_core::{Image, TileRect};
-use worker::protocol::{pixels_from_bytes, pixels_to_bytes};
+use worker::protocol::pixels_from_bytes;
 
 use super::StoreError;
 
@@ -121,10 +121,12 @@ impl Files {
             .map_err(|e| StoreError::io(format!("reading {}", path.display()), e))?;
         let pixels = pixels_from_bytes(&bytes, rect)
             .map_err(|e| StoreError::Corrupt(format!("{}: {e}", path.display())))?;
-        Image::from_pixels(rect.width, rect.height, pixels).map_err(StoreError::Corrupt)
+        Image::from_pixels(rect.width, rect.height, pixels)
+            .map_err(|e| StoreError::Corrupt(format!("{}: {e}", path.display())))
     }
 
-    /// Assembles an image from the given finished tiles; the others stay black.
+    /// Assembles an image from the given finished tiles (tracer-core's one assembly path);
+    /// the others stay black.
     pub fn assemble(
         &self,
         job_id: u64,
@@ -132,11 +134,10 @@ impl Files {
         height: u32,
         tiles: &[(u32, TileRect)],
     ) -> Result<Image, StoreError> {
-        let mut image = Image::new(width, height);
-        for &(index, rect) in tiles {
-            image.insert(rect, &self.tile(job_id, index, rect)?);
-        }
-        Ok(image)
+        let tiles = tiles
+            .iter()
+            .map(|&(index, rect)| Ok((rect, self.tile(job_id, index, rect)?)));
+        tracer_core::film::assemble(width, height, tiles)
     }
 
     /// Writes the final PNG and drops the tiles it was made of.
@@ -175,14 +176,10 @@ impl Files {
     }
 }
 
-/// Encodes pixels for [`Files::put_tile`] (the wire format is the file format).
-pub fn tile_bytes(image: &Image) -> Vec<u8> {
-    pixels_to_bytes(&image.pixels)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use worker::protocol::pixels_to_bytes;
 
     #[test]
     fn blobs_are_stored_once_by_content() {
@@ -212,7 +209,9 @@ mod tests {
             let mut tile = Image::new(rect.width, rect.height);
             tile.pixels.iter_mut().for_each(|p| *p = i as f32 / 4.0);
             expected.insert(*rect, &tile);
-            files.put_tile(7, i as u32, &tile_bytes(&tile)).unwrap();
+            files
+                .put_tile(7, i as u32, &pixels_to_bytes(&tile.pixels))
+                .unwrap();
         }
         let all: Vec<(u32, TileRect)> = rects
             .iter()
