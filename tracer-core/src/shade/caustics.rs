@@ -18,7 +18,8 @@ const MIN_NORMAL_COS: f64 = 0.5;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CausticsParams {
     pub photons: u32,
-    /// Gather radius; None derives it from the casters ([`DEFAULT_RADIUS_FRACTION`]).
+    /// Gather radius; None derives it from the casters
+    /// ([`crate::photon::DEFAULT_RADIUS_FRACTION`]).
     pub radius: Option<f64>,
 }
 
