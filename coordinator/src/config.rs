@@ -61,7 +61,7 @@ impl Limits {
     /// Checks a job's settings against the limits and tracer-core's own validation.
     pub fn check(&self, spec: &JobSpec) -> Result<(), String> {
         let s = &spec.render;
-        s.validate()?;
+        s.validate().map_err(|e| e.to_string())?;
         if s.width > self.max_dimension || s.height > self.max_dimension {
             return Err(format!(
                 "image size {}x{} exceeds the limit of {} pixels per side",

@@ -7,11 +7,11 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::geometry::Ray;
-use crate::render::Renderer;
-use crate::sampler::Rng;
+use crate::render::{RenderError, Renderer};
+use crate::sampler::{uniform_sphere, Rng};
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
-use crate::shade::{spawn_ray, uniform_sphere};
+use crate::shade::{spawn_ray, Surface};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchReport {
@@ -38,7 +38,7 @@ pub fn run(
     scene: &Scene,
     settings: &RenderSettings,
     repeats: usize,
-) -> Result<BenchReport, String> {
+) -> Result<BenchReport, RenderError> {
     let repeats = repeats.max(1);
     let renderer = Renderer::new(scene, settings)?;
     let camera = renderer.camera();
@@ -62,18 +62,13 @@ pub fn run(
     });
 
     // Secondary rays start at every primary hit, offset as the shader would.
-    let hits: Vec<(u32, crate::world::Surface, f64)> = primary
+    let stage = scene.stage(settings.texture_filter, None);
+    let hits: Vec<(u32, Surface, f64)> = primary
         .par_iter()
         .enumerate()
         .filter_map(|(i, ray)| {
             let hit = scene.world.intersect(ray, near, far)?;
-            let s = scene.world.surface(
-                ray,
-                &hit,
-                &scene.materials,
-                &scene.textures,
-                settings.texture_filter,
-            );
+            let s = stage.surface(ray, &hit);
             Some((i as u32, s, s.position.abs().max_element() + hit.t))
         })
         .collect();

@@ -1,10 +1,14 @@
-//! The pinhole camera of conventions §3: vertical fov, aspect from the image, +X right; with
-//! an aperture, a thin lens focused on a plane (depth of field).
+//! Where a ray is born. The pinhole camera of conventions §3 (vertical fov, aspect from the
+//! image, +X right; with an aperture, a thin lens focused on a plane), and [`EyeRays`]: each
+//! pixel sample's eye ray — its stratum jitter, shutter time, lens point and the random
+//! streams it starts, all seeded by (seed, pixel, sample) alone.
 
 use glam::{DQuat, DVec3};
 
 use crate::geometry::Ray;
-use crate::settings::CameraOverride;
+use crate::sampler::{concentric_disk, strata, Rng, Stream};
+use crate::scene::{CameraDesc, Scene};
+use crate::settings::{CameraOverride, RenderSettings};
 
 #[derive(Clone, Copy, Debug)]
 pub struct Camera {
@@ -90,6 +94,137 @@ impl Camera {
         let origin = self.position + self.aperture * (lens.0 * self.right + lens.1 * self.up);
         Ray::new(origin, (focus - origin).normalize())
     }
+}
+
+/// One pixel sample's start: its eye ray, the range of hits it accepts, and its streams.
+#[derive(Clone, Debug)]
+pub struct EyeSample {
+    pub ray: Ray,
+    pub near: f64,
+    pub far: f64,
+    /// The sample's main stream, after the jitter's draws: shading continues on it.
+    pub rng: Rng,
+    /// The glossy-lobe stream, when some material of the scene is glossy.
+    pub gloss: Option<Rng>,
+}
+
+/// The eye rays of one frame of a render.
+#[derive(Clone, Debug)]
+pub struct EyeRays<'a> {
+    desc: &'a CameraDesc,
+    camera: Camera,
+    width: u32,
+    height: u32,
+    spp: u32,
+    seed: u64,
+    strata: (u32, u32),
+    /// Time of the shutter's opening for this frame, and how long it stays open.
+    time_open: f64,
+    shutter_length: f64,
+    /// Whether samples draw a time (something moves while the shutter is open).
+    sample_time: bool,
+    /// Whether the camera itself moves while the shutter is open.
+    camera_moves: bool,
+    /// Whether samples seed the glossy-lobe stream.
+    glossy: bool,
+}
+
+impl<'a> EyeRays<'a> {
+    /// The eye rays of frame `settings.frame` of `scene` (a frame the scene has).
+    pub fn new(scene: &'a Scene, settings: &RenderSettings) -> Self {
+        let desc = &scene.description.camera;
+        let time_open = settings.frame as f64 + desc.shutter[0];
+        let shutter_length = desc.shutter[1] - desc.shutter[0];
+        let moving = shutter_length > 0.0 && scene.description.has_motion();
+        let mut camera = camera_at(desc, settings.width, settings.height, time_open);
+        if let Some(o) = &settings.camera {
+            camera = camera.with_override(o);
+        }
+        Self {
+            desc,
+            camera,
+            width: settings.width,
+            height: settings.height,
+            spp: settings.spp,
+            seed: settings.seed,
+            strata: strata(settings.spp),
+            time_open,
+            shutter_length,
+            sample_time: moving,
+            camera_moves: moving && settings.camera.is_none() && !desc.motion.is_static(),
+            glossy: scene.has_gloss,
+        }
+    }
+
+    /// The camera at the shutter's opening (overridden where the settings say so).
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// Sample `sample` of pixel (x, y), y counted from the image's **bottom** row.
+    #[inline]
+    pub fn sample(&self, x: u32, y: u32, sample: u32) -> EyeSample {
+        let seed = self.seed;
+        let mut rng = Rng::for_sample(seed, x, y, sample);
+        // One sample goes through the pixel centre; more are jittered within strata.
+        let (jx, jy) = if self.spp == 1 {
+            (0.5, 0.5)
+        } else {
+            let (cols, rows) = self.strata;
+            let (cx, cy) = (sample % cols, sample / cols);
+            (
+                (cx as f64 + rng.next_f64()) / cols as f64,
+                (cy as f64 + rng.next_f64()) / rows as f64,
+            )
+        };
+        // Effects draw from their own streams, so the numbers above stay the course's.
+        let time = if self.sample_time {
+            let mut r = Rng::for_stream(seed, x, y, sample, Stream::Time);
+            self.time_open + self.shutter_length * r.next_f64()
+        } else {
+            self.time_open
+        };
+        let moved;
+        let camera = if self.camera_moves {
+            moved = camera_at(self.desc, self.width, self.height, time);
+            &moved
+        } else {
+            &self.camera
+        };
+        let (w, h) = (self.width as f64, self.height as f64);
+        let (px, py) = (x as f64 + jx, y as f64 + jy);
+        let ray = if camera.aperture > 0.0 {
+            let mut r = Rng::for_stream(seed, x, y, sample, Stream::Lens);
+            let lens = concentric_disk(r.next_f64(), r.next_f64());
+            camera.lens_ray(px, py, w, h, lens)
+        } else {
+            camera.ray(px, py, w, h)
+        }
+        .at_time(time);
+        EyeSample {
+            ray,
+            near: camera.near,
+            far: camera.far,
+            rng,
+            gloss: self
+                .glossy
+                .then(|| Rng::for_stream(seed, x, y, sample, Stream::Gloss)),
+        }
+    }
+}
+
+/// The scene's camera at `time`, before any override, for a `width`×`height` image.
+fn camera_at(desc: &CameraDesc, width: u32, height: u32, time: f64) -> Camera {
+    let (position, orientation) = desc.at(time);
+    Camera::from_orientation(
+        position,
+        orientation,
+        desc.fov,
+        desc.near_clip.max(0.0),
+        desc.far_clip,
+        width as f64 / height as f64,
+    )
+    .with_lens(desc.aperture, desc.focus_at(time))
 }
 
 #[cfg(test)]

@@ -1,9 +1,53 @@
-//! Linear f32 RGB images (whole frames and tiles) and their 8-bit PNG encoding.
+//! Where rendered pixels are written: linear f32 RGB images (whole frames and tiles), tiles
+//! assembled into a frame ([`assemble`], the one path the tracer and the farm share), and the
+//! 8-bit PNG encoding.
 
 use std::io::Cursor;
 use std::path::Path;
 
 use crate::settings::TileRect;
+
+/// Pixels that do not make the image they are meant to.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    #[error("a {width}x{height} image needs {expected} floats, got {got}")]
+    PixelCount {
+        width: u32,
+        height: u32,
+        expected: usize,
+        got: usize,
+    },
+    #[error("a {got_width}x{got_height} tile does not fill {rect:?}")]
+    TileSize {
+        rect: TileRect,
+        got_width: u32,
+        got_height: u32,
+    },
+    #[error("tile {rect:?} lies outside the {width}x{height} image")]
+    TileOutside {
+        rect: TileRect,
+        width: u32,
+        height: u32,
+    },
+    #[error("cannot decode the image: {0}")]
+    Decode(image::ImageError),
+}
+
+/// The `width`×`height` image made of `tiles` (each placed at its rectangle; pixels no tile
+/// covers stay black). A tile that does not fit is an error, never a panic: the farm gets
+/// its tiles from the network.
+pub fn assemble<E: From<ImageError>>(
+    width: u32,
+    height: u32,
+    tiles: impl IntoIterator<Item = Result<(TileRect, Image), E>>,
+) -> Result<Image, E> {
+    let mut image = Image::new(width, height);
+    for tile in tiles {
+        let (rect, tile) = tile?;
+        image.try_insert(rect, &tile)?;
+    }
+    Ok(image)
+}
 
 /// A linear RGB image, row-major with the **top** row first (PNG order).
 #[derive(Clone, Debug, PartialEq)]
@@ -24,13 +68,15 @@ impl Image {
     }
 
     /// Wraps raw pixels, checking the length (the farm receives them over the wire).
-    pub fn from_pixels(width: u32, height: u32, pixels: Vec<f32>) -> Result<Self, String> {
+    pub fn from_pixels(width: u32, height: u32, pixels: Vec<f32>) -> Result<Self, ImageError> {
         let expected = 3 * width as usize * height as usize;
         if pixels.len() != expected {
-            return Err(format!(
-                "a {width}x{height} image needs {expected} floats, got {}",
-                pixels.len()
-            ));
+            return Err(ImageError::PixelCount {
+                width,
+                height,
+                expected,
+                got: pixels.len(),
+            });
         }
         Ok(Self {
             width,
@@ -44,16 +90,39 @@ impl Image {
         [self.pixels[i], self.pixels[i + 1], self.pixels[i + 2]]
     }
 
-    /// Copies `tile` into this image with its top-left corner at `(rect.x, rect.y)`.
+    /// Copies `tile` into this image with its top-left corner at `(rect.x, rect.y)`; panics
+    /// if it does not fit (see [`Image::try_insert`]).
     pub fn insert(&mut self, rect: TileRect, tile: &Image) {
-        assert_eq!((rect.width, rect.height), (tile.width, tile.height));
-        assert!(rect.x + rect.width <= self.width && rect.y + rect.height <= self.height);
+        if let Err(e) = self.try_insert(rect, tile) {
+            panic!("{e}");
+        }
+    }
+
+    /// Copies `tile` into this image at `rect`, if it is `rect`'s size and lies inside.
+    pub fn try_insert(&mut self, rect: TileRect, tile: &Image) -> Result<(), ImageError> {
+        if (rect.width, rect.height) != (tile.width, tile.height) {
+            return Err(ImageError::TileSize {
+                rect,
+                got_width: tile.width,
+                got_height: tile.height,
+            });
+        }
+        let inside =
+            |start: u32, len: u32, size: u32| start.checked_add(len).is_some_and(|end| end <= size);
+        if !inside(rect.x, rect.width, self.width) || !inside(rect.y, rect.height, self.height) {
+            return Err(ImageError::TileOutside {
+                rect,
+                width: self.width,
+                height: self.height,
+            });
+        }
         let row_len = 3 * rect.width as usize;
         for row in 0..rect.height as usize {
             let dst = 3 * ((rect.y as usize + row) * self.width as usize + rect.x as usize);
             let src = row * row_len;
             self.pixels[dst..dst + row_len].copy_from_slice(&tile.pixels[src..src + row_len]);
         }
+        Ok(())
     }
 
     /// Copies out the pixels of `rect`.
@@ -93,8 +162,8 @@ impl Image {
     }
 
     /// Decodes an 8-bit image (PNG) into linear floats value/255, as the course's loader does.
-    pub fn from_png_bytes(bytes: &[u8]) -> Result<Image, String> {
-        let decoded = image::load_from_memory(bytes).map_err(|e| e.to_string())?;
+    pub fn from_png_bytes(bytes: &[u8]) -> Result<Image, ImageError> {
+        let decoded = image::load_from_memory(bytes).map_err(ImageError::Decode)?;
         let rgb = decoded.to_rgb8();
         let (width, height) = rgb.dimensions();
         let pixels = rgb.as_raw().iter().map(|&b| b as f32 / 255.0).collect();
@@ -146,6 +215,39 @@ mod tests {
         assert_eq!(img.crop(rect), tile);
         assert_eq!(img.pixel(0, 0), [0.0; 3]);
         assert_eq!(img.pixel(3, 1), [0.0, 1.0, 2.0]);
+    }
+
+    #[test]
+    fn tiles_assemble_and_misfits_are_errors() {
+        let rects = TileRect::grid(3, 2, 2);
+        let tiles = rects.iter().enumerate().map(|(i, r)| {
+            let mut tile = Image::new(r.width, r.height);
+            tile.pixels.iter_mut().for_each(|p| *p = i as f32);
+            Ok::<_, ImageError>((*r, tile))
+        });
+        let image = assemble(3, 2, tiles).unwrap();
+        assert_eq!(image.pixel(0, 0), [0.0; 3]);
+        assert_eq!(image.pixel(2, 1), [1.0; 3]);
+        let outside = [Ok::<_, ImageError>((
+            TileRect::new(2, 0, 2, 2),
+            Image::new(2, 2),
+        ))];
+        assert!(matches!(
+            assemble(3, 2, outside),
+            Err(ImageError::TileOutside { .. })
+        ));
+        let wrong = [Ok::<_, ImageError>((
+            TileRect::new(0, 0, 2, 2),
+            Image::new(1, 2),
+        ))];
+        assert!(matches!(
+            assemble(3, 2, wrong),
+            Err(ImageError::TileSize { .. })
+        ));
+        let huge = TileRect::new(u32::MAX, 0, 2, 1);
+        assert!(Image::new(3, 2)
+            .try_insert(huge, &Image::new(2, 1))
+            .is_err());
     }
 
     #[test]

@@ -1,18 +1,29 @@
 //! Tessera's ray tracer: the CMU 15-462 assignment's scenes rendered exactly as its shading
 //! model says, plus soft shadows and anti-aliasing. No HTTP here: the farm builds on this API.
 //!
-//! Data flows one way:
+//! Modules import one way: each names only modules above it in this list.
+//! - [`sampler`], [`geometry`] (rays, bounds, transforms, keyed motion, intersectors),
+//!   [`texture`] (textures, their filter, the environment map): the leaves;
+//! - [`settings`]: the plain data of a render (settings, tiles, frame ranges);
+//! - [`film`]: f32 images, tiles assembled into frames, PNG encoding; [`metrics`],
+//!   [`convergence`] and (feature `report`) `report` measure images;
+//! - [`accel`]: the BVH; [`world`]: objects under a top-level BVH, closest-hit, any-hit and
+//!   the geometry at a hit — material indices only;
+//! - [`shade`]: materials, lights, optics, the medium stack, the caustic map's gather and
+//!   the Whitted recursion, over a [`shade::Stage`] (what shading sees of a scene);
 //! - [`scene`]: XML and OBJ parsing into a [`scene::SceneDescription`], then a renderable
 //!   [`Scene`] built from only the assets the description references;
-//! - [`geometry`] and [`accel`]: rays, transforms, intersectors and BVHs; [`world`] puts
-//!   them together for closest-hit and shadow queries;
-//! - [`shade`]: the course's shading model, with [`photon`]'s opt-in caustic map; [`camera`]
-//!   and [`sampler`] make eye rays and per-sample random numbers;
-//! - [`render`]: tiles and whole images in parallel; [`film`]: f32 images and PNG encoding.
+//! - [`photon`]: the opt-in caustic photon map, traced with shade's optics and lights;
+//! - [`camera`]: where each pixel sample's eye ray is born;
+//! - [`render`]: tiles and whole images in parallel; (feature `bench`) `bench`;
+//!   (feature `cli-args`) `cli_args`, the render flags both command lines share.
 
 pub mod accel;
+#[cfg(feature = "bench")]
 pub mod bench;
 pub mod camera;
+#[cfg(feature = "cli-args")]
+pub mod cli_args;
 pub mod convergence;
 pub mod film;
 pub mod geometry;
@@ -29,8 +40,9 @@ pub mod texture;
 pub mod world;
 
 pub use film::Image;
-pub use render::Renderer;
+pub use render::{RenderError, Renderer};
 pub use scene::{AssetSource, FsAssets, MemoryAssets, Scene, SceneError};
 pub use settings::{
-    CameraOverride, CausticsSettings, FrameRange, RenderSettings, TextureFilter, TileRect,
+    CameraOverride, CausticsSettings, FrameRange, RenderSettings, SettingsError, TextureFilter,
+    TileRect,
 };

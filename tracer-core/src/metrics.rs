@@ -2,18 +2,26 @@
 
 use crate::film::Image;
 
-fn check_sizes(a: &Image, b: &Image) -> Result<(), String> {
+/// Images that cannot be compared as asked.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MetricsError {
+    #[error("image sizes differ: {0}x{1} against {2}x{3}")]
+    SizeMismatch(u32, u32, u32, u32),
+    #[error("{0}x{1} does not divide by {2}")]
+    Indivisible(u32, u32, u32),
+}
+
+fn check_sizes(a: &Image, b: &Image) -> Result<(), MetricsError> {
     if (a.width, a.height) != (b.width, b.height) {
-        return Err(format!(
-            "image sizes differ: {}x{} against {}x{}",
-            a.width, a.height, b.width, b.height
+        return Err(MetricsError::SizeMismatch(
+            a.width, a.height, b.width, b.height,
         ));
     }
     Ok(())
 }
 
 /// Root mean square error over all channels, after clamping both images to [0, 1].
-pub fn rmse(a: &Image, b: &Image) -> Result<f64, String> {
+pub fn rmse(a: &Image, b: &Image) -> Result<f64, MetricsError> {
     check_sizes(a, b)?;
     let sum: f64 = a
         .pixels
@@ -28,7 +36,7 @@ pub fn rmse(a: &Image, b: &Image) -> Result<f64, String> {
 }
 
 /// Peak signal-to-noise ratio in dB for a peak of 1.
-pub fn psnr(a: &Image, b: &Image) -> Result<f64, String> {
+pub fn psnr(a: &Image, b: &Image) -> Result<f64, MetricsError> {
     let e = rmse(a, b)?;
     Ok(if e == 0.0 {
         f64::INFINITY
@@ -41,7 +49,7 @@ pub fn psnr(a: &Image, b: &Image) -> Result<f64, String> {
 pub const REL_MSE_EPSILON: f64 = 1e-2;
 
 /// Relative MSE: mean of (a − ref)² / (ref² + ε) over all channels, ε = [`REL_MSE_EPSILON`].
-pub fn rel_mse(image: &Image, reference: &Image) -> Result<f64, String> {
+pub fn rel_mse(image: &Image, reference: &Image) -> Result<f64, MetricsError> {
     check_sizes(image, reference)?;
     let sum: f64 = image
         .pixels
@@ -57,12 +65,9 @@ pub fn rel_mse(image: &Image, reference: &Image) -> Result<f64, String> {
 
 /// Averages `factor`×`factor` blocks (box filter), to compare a reduced render with a
 /// full-size reference. Dimensions must divide.
-pub fn downsample(image: &Image, factor: u32) -> Result<Image, String> {
+pub fn downsample(image: &Image, factor: u32) -> Result<Image, MetricsError> {
     if factor == 0 || !image.width.is_multiple_of(factor) || !image.height.is_multiple_of(factor) {
-        return Err(format!(
-            "{}x{} does not divide by {factor}",
-            image.width, image.height
-        ));
+        return Err(MetricsError::Indivisible(image.width, image.height, factor));
     }
     let (w, h) = (image.width / factor, image.height / factor);
     let mut out = Image::new(w, h);
@@ -91,7 +96,7 @@ pub fn downsample(image: &Image, factor: u32) -> Result<Image, String> {
 /// quantised to 8 bits as it would be written, at the given pixels per degree (67 is the
 /// metric's default viewing condition).
 #[cfg(feature = "flip")]
-pub fn mean_flip(test: &Image, reference: &Image) -> Result<f64, String> {
+pub fn mean_flip(test: &Image, reference: &Image) -> Result<f64, MetricsError> {
     check_sizes(test, reference)?;
     let to_flip =
         |img: &Image| nv_flip::FlipImageRgb8::with_data(img.width, img.height, &img.to_rgb8());
@@ -115,7 +120,7 @@ pub struct Comparison {
 
 #[cfg(feature = "flip")]
 impl Comparison {
-    pub fn of(image: &Image, reference: &Image) -> Result<Comparison, String> {
+    pub fn of(image: &Image, reference: &Image) -> Result<Comparison, MetricsError> {
         Ok(Comparison {
             rmse: rmse(image, reference)?,
             psnr: psnr(image, reference)?,

@@ -23,22 +23,22 @@
 //! away. The gather adds k_d·texture·E, E = Σ Φ·K(distance), to the diffuse term just as the
 //! direct term adds k_d·texture·c·att·cosθ.
 
-use std::collections::HashMap;
-use std::f64::consts::{PI, TAU};
-use std::fmt;
-use std::sync::{Arc, Mutex};
+use std::f64::consts::TAU;
+use std::sync::Arc;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::geometry::{Aabb, Ray};
 use crate::sampler::Rng;
-use crate::scene::{CausticsDesc, Light, Scene};
+use crate::scene::{CausticsDesc, Scene};
 use crate::settings::{CausticsSettings, RenderSettings, TextureFilter};
-use crate::shade::{reflect, refract, schlick, spawn_ray, uniform_sphere};
+use crate::shade::caustics::{MapKey, Photon};
+use crate::shade::{reflect, spawn_ray, toward_viewer, Crossing, Light, MediumStack, Stage};
 
-/// Most photons one map may emit (each stored photon takes 48 bytes).
-pub const MAX_PHOTONS: u32 = 5_000_000;
+pub use crate::shade::{CausticMap, CausticsParams};
+
+pub use crate::settings::MAX_PHOTONS;
 /// Photons emitted when neither the scene nor the settings give a count.
 pub const DEFAULT_PHOTONS: u32 = 200_000;
 /// Default gather radius as a fraction of the smallest caster's bounding-sphere radius: a
@@ -52,22 +52,9 @@ const MAX_BOUNCES: u32 = 12;
 const MAX_CONES: usize = 32;
 /// Photons per parallel task; where tasks split never changes the map.
 const CHUNK: u32 = 4096;
-/// A photon counts only on surfaces facing within 60° of the one it landed on, so light does
-/// not leak round corners.
-const MIN_NORMAL_COS: f64 = 0.5;
 /// Photon streams use pixel row u32::MAX, which no image has, so they never repeat a pixel
 /// sample's numbers.
 const PHOTON_ROW: u32 = u32::MAX;
-/// Deepest nesting of media a photon tracks (as the camera's tracer does).
-const MAX_MEDIA: usize = 16;
-
-/// What a render asks of the caustic map once the scene and the settings are combined.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct CausticsParams {
-    pub photons: u32,
-    /// Gather radius; None derives it from the casters ([`DEFAULT_RADIUS_FRACTION`]).
-    pub radius: Option<f64>,
-}
 
 impl CausticsParams {
     /// The settings win over the scene; None when caustics are off.
@@ -116,63 +103,7 @@ pub fn caustic_map(scene: &Scene, settings: &RenderSettings) -> Option<Arc<Caust
     (!map.is_empty()).then_some(map)
 }
 
-/// Everything a map depends on besides the scene.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct MapKey {
-    params: CausticsParams,
-    seed: u64,
-    filter: TextureFilter,
-}
-
-/// The last map built for a scene. A cloned scene starts with an empty cache, so a clone that
-/// is then changed can never be handed a stale map.
-#[derive(Default)]
-pub struct CausticCache(Mutex<Option<(MapKey, Arc<CausticMap>)>>);
-
-impl Clone for CausticCache {
-    fn clone(&self) -> Self {
-        Self::default()
-    }
-}
-
-impl fmt::Debug for CausticCache {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let built = self.0.lock().map(|s| s.is_some()).unwrap_or(false);
-        f.debug_struct("CausticCache")
-            .field("built", &built)
-            .finish()
-    }
-}
-
-/// One photon's landing: where, how much flux, and the normal of the side it arrived on.
-#[derive(Clone, Copy, Debug)]
-struct Photon {
-    position: DVec3,
-    power: [f32; 3],
-    normal: [f32; 3],
-}
-
-/// Caustic photons in a uniform grid of cells twice the gather radius wide, so that a gather
-/// looks at no more than 2×2×2 cells.
-pub struct CausticMap {
-    radius: f64,
-    cell: f64,
-    /// Sorted by cell, then by emission order.
-    photons: Vec<Photon>,
-    cells: HashMap<[i32; 3], (u32, u32)>,
-    emitted: u32,
-}
-
-impl fmt::Debug for CausticMap {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.debug_struct("CausticMap")
-            .field("radius", &self.radius)
-            .field("emitted", &self.emitted)
-            .field("stored", &self.photons.len())
-            .finish()
-    }
-}
-
+// The map's storage and gather are shading's (`shade::caustics`); filling it is here.
 impl CausticMap {
     /// Emits `params.photons` photons, shared evenly among the lights, and keeps where they land.
     pub fn build(
@@ -181,7 +112,8 @@ impl CausticMap {
         seed: u64,
         filter: TextureFilter,
     ) -> CausticMap {
-        let casters = casters(scene);
+        let stage = scene.stage(filter, None);
+        let casters = casters(&stage);
         let radius = params.radius.unwrap_or_else(|| {
             let smallest = casters
                 .iter()
@@ -193,7 +125,7 @@ impl CausticMap {
                 1.0
             }
         });
-        if casters.is_empty() || scene.lights.is_empty() {
+        if casters.is_empty() || stage.lights.is_empty() {
             return CausticMap::from_photons(Vec::new(), radius, params.photons);
         }
         let targets = if casters.len() > MAX_CONES {
@@ -202,9 +134,8 @@ impl CausticMap {
             casters
         };
         let emitter = Emitter {
-            scene,
+            stage,
             targets: &targets,
-            filter,
             seed,
             photons: params.photons,
         };
@@ -222,96 +153,6 @@ impl CausticMap {
             .collect();
         CausticMap::from_photons(parts.concat(), radius, params.photons)
     }
-
-    fn from_photons(photons: Vec<Photon>, radius: f64, emitted: u32) -> CausticMap {
-        let cell = 2.0 * radius;
-        let key_of = |p: DVec3| cell_key(p, cell);
-        // (cell, emission order) is a total order: the layout cannot depend on the sort.
-        let mut order: Vec<([i32; 3], u32)> = photons
-            .iter()
-            .enumerate()
-            .map(|(i, ph)| (key_of(ph.position), i as u32))
-            .collect();
-        order.sort_unstable();
-        let sorted: Vec<Photon> = order.iter().map(|&(_, i)| photons[i as usize]).collect();
-        let mut cells = HashMap::new();
-        let mut start = 0;
-        while start < order.len() {
-            let key = order[start].0;
-            let end = start + order[start..].partition_point(|(k, _)| *k == key);
-            cells.insert(key, (start as u32, end as u32));
-            start = end;
-        }
-        CausticMap {
-            radius,
-            cell,
-            photons: sorted,
-            cells,
-            emitted,
-        }
-    }
-
-    pub fn radius(&self) -> f64 {
-        self.radius
-    }
-
-    /// Photons emitted from the lights.
-    pub fn emitted(&self) -> u32 {
-        self.emitted
-    }
-
-    /// Photons stored (landings on diffuse surfaces).
-    pub fn len(&self) -> usize {
-        self.photons.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.photons.is_empty()
-    }
-
-    /// The flux of every stored photon together.
-    pub fn total_power(&self) -> DVec3 {
-        self.photons
-            .iter()
-            .map(|p| DVec3::from(p.power.map(f64::from)))
-            .sum()
-    }
-
-    /// Caustic irradiance at `p` on a surface whose unit normal `n` faces the viewer: the
-    /// photons within the radius, weighted by the Epanechnikov kernel 1 − d²/r², whose
-    /// integral over the disc is πr²/2.
-    pub fn irradiance(&self, p: DVec3, n: DVec3) -> DVec3 {
-        let r2 = self.radius * self.radius;
-        let lo = cell_key(p - DVec3::splat(self.radius), self.cell);
-        let hi = cell_key(p + DVec3::splat(self.radius), self.cell);
-        // At most two cells per axis, unless coordinates are so large that keys saturate.
-        if (0..3).any(|a| hi[a] as i64 - lo[a] as i64 > 2) {
-            return DVec3::ZERO;
-        }
-        let mut sum = DVec3::ZERO;
-        for x in lo[0]..=hi[0] {
-            for y in lo[1]..=hi[1] {
-                for z in lo[2]..=hi[2] {
-                    let Some(&(start, end)) = self.cells.get(&[x, y, z]) else {
-                        continue;
-                    };
-                    for ph in &self.photons[start as usize..end as usize] {
-                        let d2 = (ph.position - p).length_squared();
-                        if d2 < r2 && DVec3::from(ph.normal.map(f64::from)).dot(n) >= MIN_NORMAL_COS
-                        {
-                            sum += DVec3::from(ph.power.map(f64::from)) * (1.0 - d2 / r2);
-                        }
-                    }
-                }
-            }
-        }
-        sum * (2.0 / (PI * r2))
-    }
-}
-
-/// The grid cell holding `p` (saturating for coordinates beyond the i32 range).
-fn cell_key(p: DVec3, cell: f64) -> [i32; 3] {
-    (p / cell).floor().to_array().map(|v| v as i32)
 }
 
 /// A bounding sphere of something that can reflect or refract light.
@@ -346,10 +187,10 @@ impl Caster {
 }
 
 /// Every object with a dielectric material or a mirror tint, in the world's object order.
-fn casters(scene: &Scene) -> Vec<Caster> {
-    let world = &scene.world;
+fn casters(stage: &Stage) -> Vec<Caster> {
+    let world = stage.world;
     let focuses = |m: u32| {
-        let m = &scene.materials[m as usize];
+        let m = &stage.materials.materials[m as usize];
         m.ior != 0.0 || m.specular != DVec3::ZERO
     };
     // A sphere's own bounding sphere: its box's would be √3 times wider and waste photons.
@@ -434,9 +275,8 @@ impl Cone {
 }
 
 struct Emitter<'a> {
-    scene: &'a Scene,
+    stage: Stage<'a>,
     targets: &'a [Caster],
-    filter: TextureFilter,
     seed: u64,
     photons: u32,
 }
@@ -444,17 +284,12 @@ struct Emitter<'a> {
 impl Emitter<'_> {
     /// Traces photon `index` and appends its landings on diffuse surfaces to `out`.
     fn trace(&self, index: u32, out: &mut Vec<Photon>) {
-        let scene = self.scene;
-        let lights = scene.lights.len() as u32;
-        let light = &scene.lights[(index % lights) as usize];
+        let lights = self.stage.lights.len() as u32;
+        let light = &self.stage.lights[(index % lights) as usize];
         // Photons go round-robin over the lights: light l emits ⌈(N − l)/L⌉ of them.
         let emitted = (self.photons - index % lights).div_ceil(lights);
         let mut rng = Rng::for_sample(self.seed, index, PHOTON_ROW, 0);
-        let origin = if light.radius > 0.0 {
-            light.position + light.radius * uniform_sphere(rng.next_f64(), rng.next_f64())
-        } else {
-            light.position
-        };
+        let origin = light.sample_point(&mut rng);
 
         // Pick a cone in proportion to its solid angle, then a direction in it. Cones may
         // overlap, so the direction's density is (cones holding it)/(total solid angle).
@@ -500,30 +335,23 @@ impl Emitter<'_> {
         rng: &mut Rng,
         out: &mut Vec<Photon>,
     ) {
-        let scene = self.scene;
-        let world = &scene.world;
+        let stage = &self.stage;
         let mut throughput = DVec3::ONE;
         let mut travelled = 0.0;
-        let mut media = Media::new(scene.description.refractive_index);
+        let mut media = MediumStack::new(stage.outer_ior);
         for bounce in 0..MAX_BOUNCES {
-            let Some(hit) = world.intersect(&ray, 0.0, f64::INFINITY) else {
+            let Some(hit) = stage.world.intersect(&ray, 0.0, f64::INFINITY) else {
                 return;
             };
-            let s = world.surface(&ray, &hit, &scene.materials, &scene.textures, self.filter);
+            let s = stage.surface(&ray, &hit);
             travelled += hit.t;
             let error_scale = s.position.abs().max_element() + hit.t;
             let d = ray.dir;
             let next = if s.ior == 0.0 {
                 // Opaque: the side the photon arrives on, as the camera's tracer flips it.
-                let n = if s.normal.dot(d) > 0.0 {
-                    -s.normal
-                } else {
-                    s.normal
-                };
+                let n = toward_viewer(s.normal, d);
                 if bounce > 0 && s.texture * s.diffuse != DVec3::ZERO {
-                    let [a_c, a_l, a_q] = light.attenuation;
-                    let falloff = (a_c + a_l * travelled + a_q * travelled * travelled).max(1e-12);
-                    let flux = travelled * travelled * solid_angle / falloff;
+                    let flux = travelled * travelled * solid_angle / light.falloff(travelled);
                     let power = light.color * flux * throughput;
                     if power.is_finite() && s.position.is_finite() && n.is_finite() {
                         out.push(Photon {
@@ -540,31 +368,21 @@ impl Emitter<'_> {
                 throughput *= tint;
                 reflect(d, n)
             } else {
-                // Dielectric, decided as in shade.rs; Russian roulette on Schlick's R picks
+                // The camera's dielectric decision; Russian roulette on Schlick's R picks
                 // reflection or refraction without changing the photon's expected flux.
-                let entering = s.normal.dot(d) < 0.0;
-                let facing = if entering { s.normal } else { -s.normal };
-                let (n1, n2, inside) = if entering {
-                    (media.current(), s.ior, media.entered(s.ior))
-                } else {
-                    let (after, removed) = media.left(s.ior);
-                    let n1 = if removed { media.current() } else { s.ior };
-                    (n1, after.current(), after)
-                };
-                let cos_incident = d.dot(s.normal).abs().min(1.0);
-                let reflectance = schlick(n1, n2, cos_incident);
-                if rng.next_f64() < reflectance {
+                let crossing = Crossing::new(media, s.normal, d, s.ior, s.absorption);
+                if rng.next_f64() < crossing.reflectance {
                     let tint = s.texture * s.specular;
                     if tint == DVec3::ZERO {
                         return;
                     }
                     throughput *= tint;
-                    reflect(d, facing)
+                    crossing.reflected(d)
                 } else {
-                    let Some(dir) = refract(d, facing, n1, n2) else {
+                    let Some(dir) = crossing.refracted(d) else {
                         return;
                     };
-                    media = inside;
+                    media = crossing.beyond;
                     dir
                 }
             };
@@ -572,45 +390,6 @@ impl Emitter<'_> {
                 return;
             }
             ray = spawn_ray(s.position, s.geometric_normal, next, error_scale, ray.time);
-        }
-    }
-}
-
-/// The media a photon is inside, outermost first: shade.rs's stack, with the exit reporting
-/// whether it matched an entry.
-#[derive(Clone, Copy, Debug)]
-struct Media {
-    indices: [f64; MAX_MEDIA],
-    len: usize,
-}
-
-impl Media {
-    fn new(outer: f64) -> Self {
-        let mut indices = [0.0; MAX_MEDIA];
-        indices[0] = outer;
-        Self { indices, len: 1 }
-    }
-
-    fn current(&self) -> f64 {
-        self.indices[self.len - 1]
-    }
-
-    fn entered(mut self, ior: f64) -> Self {
-        if self.len < MAX_MEDIA {
-            self.indices[self.len] = ior;
-            self.len += 1;
-        }
-        self
-    }
-
-    fn left(mut self, ior: f64) -> (Self, bool) {
-        match (1..self.len).rev().find(|&i| self.indices[i] == ior) {
-            Some(i) => {
-                self.indices.copy_within(i + 1..self.len, i);
-                self.len -= 1;
-                (self, true)
-            }
-            None => (self, false),
         }
     }
 }
@@ -680,44 +459,6 @@ mod tests {
         assert_eq!(
             CausticsParams::resolve(None, &on).map(|p| p.photons),
             Some(DEFAULT_PHOTONS)
-        );
-    }
-
-    #[test]
-    fn media_exits_report_whether_they_matched() {
-        let glass = Media::new(1.0).entered(1.5);
-        let (out, removed) = glass.left(1.5);
-        assert!(removed);
-        assert_eq!(out.current(), 1.0);
-        let (same, removed) = glass.left(1.33);
-        assert!(!removed);
-        assert_eq!(same.current(), 1.5);
-    }
-
-    #[test]
-    fn grid_gathers_with_a_normalised_kernel() {
-        // Photons of power 1 on a fine lattice of the plane y = 0 with spacing h: the
-        // irradiance anywhere well inside is 1/h².
-        let h = 0.01;
-        let mut photons = Vec::new();
-        for i in -100..=100 {
-            for j in -100..=100 {
-                photons.push(Photon {
-                    position: DVec3::new(i as f64 * h, 0.0, j as f64 * h),
-                    power: [1.0; 3],
-                    normal: [0.0, 1.0, 0.0],
-                });
-            }
-        }
-        let map = CausticMap::from_photons(photons, 0.1, 1);
-        let e = map.irradiance(DVec3::new(0.013, 0.0, -0.021), DVec3::Y);
-        assert!((e.x * h * h - 1.0).abs() < 0.02, "{e}");
-        // The other side of the surface sees none of it.
-        assert_eq!(map.irradiance(DVec3::ZERO, DVec3::NEG_Y), DVec3::ZERO);
-        // Nor does a point beyond the radius.
-        assert_eq!(
-            map.irradiance(DVec3::new(1.2, 0.0, 0.0), DVec3::Y),
-            DVec3::ZERO
         );
     }
 }

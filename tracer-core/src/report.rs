@@ -8,8 +8,43 @@ use std::path::{Path, PathBuf};
 use plotters::prelude::*;
 
 use crate::convergence::{log_log_slope, Measurement};
-use crate::metrics::{mean_flip, rel_mse, rmse, REL_MSE_EPSILON};
+use crate::film::ImageError;
+use crate::metrics::{mean_flip, rel_mse, rmse, MetricsError, REL_MSE_EPSILON};
+use crate::render::RenderError;
 use crate::{Image, RenderSettings, Renderer, Scene};
+
+/// Why a report could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    #[error("cannot read {path}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("cannot write {path}")]
+    Write {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("the reference {path}")]
+    Reference { path: PathBuf, source: ImageError },
+    #[error(
+        "the reference is {got_width}x{got_height}, but the report renders {width}x{height} \
+         (set --width/--height)"
+    )]
+    ReferenceSize {
+        got_width: u32,
+        got_height: u32,
+        width: u32,
+        height: u32,
+    },
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    #[error(transparent)]
+    Metrics(#[from] MetricsError),
+    #[error("cannot plot: {0}")]
+    Plot(String),
+}
 
 /// Seeds the rendered reference apart from every measured render, so its noise is
 /// independent of theirs.
@@ -36,16 +71,23 @@ pub fn reference_image(
     path: Option<&Path>,
     reference_spp: u32,
     pool: &rayon::ThreadPool,
-) -> Result<(Image, String), String> {
+) -> Result<(Image, String), ReportError> {
     if let Some(path) = path {
-        let bytes =
-            std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-        let image = Image::from_png_bytes(&bytes)?;
+        let bytes = std::fs::read(path).map_err(|source| ReportError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let image = Image::from_png_bytes(&bytes).map_err(|source| ReportError::Reference {
+            path: path.to_path_buf(),
+            source,
+        })?;
         if (image.width, image.height) != (settings.width, settings.height) {
-            return Err(format!(
-                "the reference is {}x{}, but the report renders {}x{} (set --width/--height)",
-                image.width, image.height, settings.width, settings.height
-            ));
+            return Err(ReportError::ReferenceSize {
+                got_width: image.width,
+                got_height: image.height,
+                width: settings.width,
+                height: settings.height,
+            });
         }
         return Ok((image, format!("`{}`", path.display())));
     }
@@ -67,7 +109,7 @@ pub fn timed_render(
     scene: &Scene,
     settings: &RenderSettings,
     pool: &rayon::ThreadPool,
-) -> Result<(Image, f64), String> {
+) -> Result<(Image, f64), ReportError> {
     let renderer = Renderer::new(scene, settings)?;
     let started = std::time::Instant::now();
     let image = pool.install(|| renderer.render_image(&|_, _| {}));
@@ -89,7 +131,7 @@ pub fn measure(
     seconds: f64,
     image: &Image,
     reference: &Image,
-) -> Result<Measurement, String> {
+) -> Result<Measurement, ReportError> {
     Ok(Measurement {
         config: config.to_string(),
         spp,
@@ -101,15 +143,23 @@ pub fn measure(
 }
 
 /// Writes the three report files into `dir`, creating it.
-pub fn write_report(dir: &Path, meta: &ReportMeta, rows: &[Measurement]) -> Result<(), String> {
-    std::fs::create_dir_all(dir).map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
+pub fn write_report(
+    dir: &Path,
+    meta: &ReportMeta,
+    rows: &[Measurement],
+) -> Result<(), ReportError> {
+    std::fs::create_dir_all(dir).map_err(|source| ReportError::Write {
+        path: dir.to_path_buf(),
+        source,
+    })?;
     let write = |name: &str, bytes: &[u8]| {
         let path = dir.join(name);
-        std::fs::write(&path, bytes).map_err(|e| format!("cannot write {}: {e}", path.display()))
+        std::fs::write(&path, bytes).map_err(|source| ReportError::Write { path, source })
     };
     write("report.csv", csv(rows).as_bytes())?;
     write("report.md", markdown(meta, rows).as_bytes())?;
-    write("error_vs_time.png", &plot(&meta.scene, rows)?)?;
+    let png = plot(&meta.scene, rows).map_err(ReportError::Plot)?;
+    write("error_vs_time.png", &png)?;
     Ok(())
 }
 
@@ -298,7 +348,8 @@ fn plot(scene: &Path, rows: &[Measurement]) -> Result<Vec<u8>, String> {
             .map_err(err)?;
         root.present().map_err(err)?;
     }
-    let image = Image::from_pixels(w, h, buffer.iter().map(|&b| b as f32 / 255.0).collect())?;
+    let image = Image::from_pixels(w, h, buffer.iter().map(|&b| b as f32 / 255.0).collect())
+        .map_err(|e| e.to_string())?;
     Ok(image.to_png())
 }
 

@@ -58,6 +58,14 @@ pub enum Stream {
     Gloss = 3,
 }
 
+/// A uniform point on the unit sphere from two uniform numbers.
+pub fn uniform_sphere(u1: f64, u2: f64) -> glam::DVec3 {
+    let z = 1.0 - 2.0 * u1;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = std::f64::consts::TAU * u2;
+    glam::DVec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
 /// A uniform point on the unit disk (Shirley–Chiu concentric map: strata stay compact).
 pub fn concentric_disk(u1: f64, u2: f64) -> (f64, f64) {
     let a = 2.0 * u1 - 1.0;
@@ -90,6 +98,18 @@ pub fn strata(spp: u32) -> (u32, u32) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sphere_samples_are_unit_and_unbiased() {
+        let mut rng = Rng::for_sample(3, 1, 2, 0);
+        let mut mean = glam::DVec3::ZERO;
+        for _ in 0..20_000 {
+            let p = uniform_sphere(rng.next_f64(), rng.next_f64());
+            assert!((p.length() - 1.0).abs() < 1e-12);
+            mean += p;
+        }
+        assert!((mean / 20_000.0).length() < 0.02);
+    }
 
     #[test]
     fn streams_are_reproducible_and_distinct() {

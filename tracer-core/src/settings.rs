@@ -5,15 +5,51 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
-/// How textures are sampled between texels.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum TextureFilter {
-    /// Nearest texel: the handout's baseline, and the closer fit to the references.
-    #[default]
-    Nearest,
-    /// GL-style bilinear with repeat wrap.
-    Bilinear,
+pub use crate::texture::TextureFilter;
+
+/// Most caustic photons one map may emit (each stored photon takes 48 bytes).
+pub const MAX_PHOTONS: u32 = 5_000_000;
+
+/// Settings no render can honour.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SettingsError {
+    #[error("image size {width}x{height} must be at least 1x1")]
+    EmptyImage { width: u32, height: u32 },
+    #[error("spp must be at least 1")]
+    NoSamples,
+    #[error("caustic photons {0} must lie between 1 and {MAX_PHOTONS}")]
+    Photons(u32),
+    #[error("caustic gather radius {0} must be a positive number")]
+    PhotonRadius(f64),
+    #[error("camera override has a non-finite coordinate")]
+    CameraNotFinite,
+    #[error("camera override looks at its own position")]
+    CameraLooksAtItself,
+    #[error("camera override's up vector is parallel to its view direction")]
+    CameraUpParallel,
+    #[error("the frame range {first}..{last} is empty")]
+    EmptyFrameRange { first: u32, last: u32 },
+    #[error("frames {first}..{last}: the scene has {frame_count} frame(s), numbered from 0")]
+    FramesOutOfRange {
+        first: u32,
+        last: u32,
+        frame_count: u32,
+    },
+}
+
+/// A command-line value that does not parse.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ParseError {
+    #[error("expected A..B, got '{0}'")]
+    FrameRange(String),
+    #[error("'{0}' is not a frame number")]
+    FrameNumber(String),
+    #[error("expected x,y,z, got '{0}'")]
+    Vec3(String),
+    #[error("'{0}' is not a finite number")]
+    NotFinite(String),
+    #[error(transparent)]
+    Settings(#[from] SettingsError),
 }
 
 /// A camera placed by position, look-at point and up vector, replacing the scene's camera.
@@ -62,20 +98,15 @@ impl CausticsSettings {
         *self == Self::default()
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), SettingsError> {
         if let Some(n) = self.photons {
-            if n == 0 || n > crate::photon::MAX_PHOTONS {
-                return Err(format!(
-                    "caustic photons {n} must lie between 1 and {}",
-                    crate::photon::MAX_PHOTONS
-                ));
+            if n == 0 || n > MAX_PHOTONS {
+                return Err(SettingsError::Photons(n));
             }
         }
         if let Some(r) = self.radius {
             if !(r.is_finite() && r > 0.0) {
-                return Err(format!(
-                    "caustic gather radius {r} must be a positive number"
-                ));
+                return Err(SettingsError::PhotonRadius(r));
             }
         }
         Ok(())
@@ -120,25 +151,25 @@ impl Default for RenderSettings {
 
 impl RenderSettings {
     /// Rejects settings no render can honour (limits on size belong to the caller).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), SettingsError> {
         if self.width == 0 || self.height == 0 {
-            return Err(format!(
-                "image size {}x{} must be at least 1x1",
-                self.width, self.height
-            ));
+            return Err(SettingsError::EmptyImage {
+                width: self.width,
+                height: self.height,
+            });
         }
         if self.spp == 0 {
-            return Err("spp must be at least 1".into());
+            return Err(SettingsError::NoSamples);
         }
         self.caustics.validate()?;
         if let Some(cam) = &self.camera {
             let all = cam.position.iter().chain(&cam.look_at).chain(&cam.up);
             if all.clone().any(|v| !v.is_finite()) {
-                return Err("camera override has a non-finite coordinate".into());
+                return Err(SettingsError::CameraNotFinite);
             }
             let forward: Vec<f64> = (0..3).map(|i| cam.look_at[i] - cam.position[i]).collect();
             if forward.iter().all(|v| *v == 0.0) {
-                return Err("camera override looks at its own position".into());
+                return Err(SettingsError::CameraLooksAtItself);
             }
             let up = cam.up;
             let cross = [
@@ -147,7 +178,7 @@ impl RenderSettings {
                 forward[0] * up[1] - forward[1] * up[0],
             ];
             if cross.iter().all(|v| *v == 0.0) {
-                return Err("camera override's up vector is parallel to its view direction".into());
+                return Err(SettingsError::CameraUpParallel);
             }
         }
         Ok(())
@@ -204,9 +235,9 @@ pub struct FrameRange {
 
 impl FrameRange {
     /// A range from `first` through `last`; empty ranges are refused.
-    pub fn new(first: u32, last: u32) -> Result<Self, String> {
+    pub fn new(first: u32, last: u32) -> Result<Self, SettingsError> {
         if first > last {
-            return Err(format!("the frame range {first}..{last} is empty"));
+            return Err(SettingsError::EmptyFrameRange { first, last });
         }
         Ok(Self { first, last })
     }
@@ -227,37 +258,38 @@ impl FrameRange {
     }
 
     /// Checks the range against a scene with `frame_count` frames.
-    pub fn validate(&self, frame_count: u32) -> Result<(), String> {
+    pub fn validate(&self, frame_count: u32) -> Result<(), SettingsError> {
         if self.is_empty() {
-            return Err(format!(
-                "the frame range {}..{} is empty",
-                self.first, self.last
-            ));
+            return Err(SettingsError::EmptyFrameRange {
+                first: self.first,
+                last: self.last,
+            });
         }
         if self.last >= frame_count {
-            return Err(format!(
-                "frames {}..{}: the scene has {frame_count} frame(s), numbered from 0",
-                self.first, self.last
-            ));
+            return Err(SettingsError::FramesOutOfRange {
+                first: self.first,
+                last: self.last,
+                frame_count,
+            });
         }
         Ok(())
     }
 }
 
 impl FromStr for FrameRange {
-    type Err = String;
+    type Err = ParseError;
 
     /// `A..B`, inclusive.
-    fn from_str(s: &str) -> Result<Self, String> {
+    fn from_str(s: &str) -> Result<Self, ParseError> {
         let (a, b) = s
             .split_once("..")
-            .ok_or_else(|| format!("expected A..B, got '{s}'"))?;
+            .ok_or_else(|| ParseError::FrameRange(s.to_string()))?;
         let num = |t: &str| {
             t.trim()
                 .parse::<u32>()
-                .map_err(|_| format!("'{t}' is not a frame number"))
+                .map_err(|_| ParseError::FrameNumber(t.to_string()))
         };
-        FrameRange::new(num(a)?, num(b)?)
+        Ok(FrameRange::new(num(a)?, num(b)?)?)
     }
 }
 
@@ -275,10 +307,10 @@ pub fn numbered_path(output: &Path, frame: u32) -> PathBuf {
 }
 
 /// `x,y,z` as three finite numbers (command-line vectors).
-pub fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
+pub fn parse_vec3(s: &str) -> Result<[f64; 3], ParseError> {
     let parts: Vec<&str> = s.split(',').map(str::trim).collect();
     let [x, y, z] = parts.as_slice() else {
-        return Err(format!("expected x,y,z, got '{s}'"));
+        return Err(ParseError::Vec3(s.to_string()));
     };
     let mut v = [0.0; 3];
     for (slot, part) in v.iter_mut().zip([x, y, z]) {
@@ -286,7 +318,7 @@ pub fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
             .parse::<f64>()
             .ok()
             .filter(|n| n.is_finite())
-            .ok_or_else(|| format!("'{part}' is not a finite number"))?;
+            .ok_or_else(|| ParseError::NotFinite(part.to_string()))?;
     }
     Ok(v)
 }
@@ -327,7 +359,11 @@ mod tests {
         assert!("5".parse::<FrameRange>().is_err());
         assert!("a..2".parse::<FrameRange>().is_err());
         assert!(r.validate(6).is_ok());
-        assert!(r.validate(5).unwrap_err().contains("5 frame(s)"));
+        assert!(r
+            .validate(5)
+            .unwrap_err()
+            .to_string()
+            .contains("5 frame(s)"));
         assert!(FrameRange { first: 3, last: 1 }.validate(9).is_err());
         assert_eq!(
             numbered_path(Path::new("out/a.png"), 3),

@@ -1,8 +1,28 @@
-//! PNG textures: 8-bit RGB held bottom row first, sampled with repeat wrap (conventions §5).
+//! PNG textures: 8-bit RGB held bottom row first, sampled with repeat wrap (conventions §5),
+//! and the latitude–longitude environment map built on one.
 
 use glam::{DVec2, DVec3};
+use serde::{Deserialize, Serialize};
 
-use crate::settings::TextureFilter;
+/// How textures are sampled between texels.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TextureFilter {
+    /// Nearest texel: the handout's baseline, and the closer fit to the references.
+    #[default]
+    Nearest,
+    /// GL-style bilinear with repeat wrap.
+    Bilinear,
+}
+
+/// A texture file that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum TextureError {
+    #[error("cannot decode PNG: {0}")]
+    Decode(image::ImageError),
+    #[error("the PNG has no pixels")]
+    Empty,
+}
 
 #[derive(Clone, Debug)]
 pub struct Texture {
@@ -14,13 +34,13 @@ pub struct Texture {
 
 impl Texture {
     /// Decodes a PNG; alpha, gamma and colour-profile chunks are ignored, as in the course.
-    pub fn decode_png(bytes: &[u8]) -> Result<Texture, String> {
+    pub fn decode_png(bytes: &[u8]) -> Result<Texture, TextureError> {
         let image = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
-            .map_err(|e| format!("cannot decode PNG: {e}"))?
+            .map_err(TextureError::Decode)?
             .to_rgb8();
         let (width, height) = image.dimensions();
         if width == 0 || height == 0 {
-            return Err("the PNG has no pixels".into());
+            return Err(TextureError::Empty);
         }
         let mut texels = Vec::with_capacity(width as usize * height as usize);
         for row in image.rows().rev() {
@@ -79,6 +99,41 @@ impl Texture {
                 bottom.lerp(top, ty)
             }
         }
+    }
+}
+
+/// A latitude–longitude image seen by rays that leave the scene.
+#[derive(Clone, Debug)]
+pub struct Environment {
+    pub image: Texture,
+    pub intensity: f64,
+    /// cos and sin of the turn about +Y.
+    rotation: (f64, f64),
+}
+
+impl Environment {
+    pub fn new(image: Texture, intensity: f64, rotation: f64) -> Self {
+        Self {
+            image,
+            intensity,
+            rotation: (rotation.cos(), rotation.sin()),
+        }
+    }
+
+    /// The colour toward unit direction `d`: −Z (the default view) sees the image's centre,
+    /// +Y its top row; u grows turning right, toward +X. Filtered bilinearly, wrapping
+    /// around in u only.
+    pub fn lookup(&self, d: DVec3) -> DVec3 {
+        let (c, s) = self.rotation;
+        // Turning the map by +θ about Y turns the direction by −θ.
+        let x = c * d.x + s * d.z;
+        let z = -s * d.x + c * d.z;
+        let u = 0.5 + x.atan2(-z) / std::f64::consts::TAU;
+        let v = 0.5 + d.y.clamp(-1.0, 1.0).asin() / std::f64::consts::PI;
+        // Rows do not wrap over the poles: stay within the outer rows' centres.
+        let half_row = 0.5 / self.image.dimensions().1 as f64;
+        let v = v.clamp(half_row, 1.0 - half_row);
+        self.intensity * self.image.sample(DVec2::new(u, v), TextureFilter::Bilinear)
     }
 }
 

@@ -1,30 +1,14 @@
 //! The renderable geometry: spheres, world-space scene triangles and mesh instances under a
-//! top-level BVH, with closest-hit, any-hit and surface queries.
+//! top-level BVH, with closest-hit, any-hit and surface-geometry queries. Objects carry
+//! material indices only; what a material looks like is `shade::material`'s business.
 
 use glam::{DVec2, DVec3};
 
 use crate::accel::{Bvh, PADDING};
 use crate::geometry::{
-    any_candidate, intersect_triangle, intersect_unit_sphere_scaled, Aabb, Ray, Transform,
-    TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
+    any_candidate, intersect_triangle, intersect_unit_sphere_scaled, Aabb, Motion, Ray, Transform,
+    TransformDesc, TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
 };
-use crate::scene::{Motion, TransformDesc};
-use crate::settings::TextureFilter;
-use crate::texture::Texture;
-
-#[derive(Clone, Debug)]
-pub struct Material {
-    pub ambient: DVec3,
-    pub diffuse: DVec3,
-    pub specular: DVec3,
-    /// 0 is opaque; anything else a dielectric.
-    pub ior: f64,
-    pub texture: Option<u32>,
-    /// Spread of reflections; 0 is a perfect mirror.
-    pub glossiness: f64,
-    /// Beer's-law coefficients inside a dielectric.
-    pub absorption: DVec3,
-}
 
 #[derive(Clone, Debug)]
 pub struct Sphere {
@@ -231,22 +215,26 @@ pub struct Hit {
     bary: [f64; 3],
 }
 
-/// Everything shading needs at a hit point.
+/// The geometry at a hit point: everything shading needs except the material's values.
 #[derive(Clone, Copy, Debug)]
-pub struct Surface {
+pub struct Patch {
     pub position: DVec3,
     /// Interpolated shading normal, unit length, pointing out of the surface as modelled.
     pub normal: DVec3,
     /// Geometric normal (same side as `normal`'s intent), for offsetting spawned rays.
     pub geometric_normal: DVec3,
-    pub ambient: DVec3,
-    pub diffuse: DVec3,
-    pub specular: DVec3,
-    pub ior: f64,
-    /// Texture colour at the hit (white where there is no texture).
-    pub texture: DVec3,
-    pub glossiness: f64,
-    pub absorption: DVec3,
+    /// Texture coordinates at the hit.
+    pub uv: DVec2,
+    pub material: MaterialAt,
+}
+
+/// Which material applies at a hit.
+#[derive(Clone, Copy, Debug)]
+pub enum MaterialAt {
+    /// One material for the whole object (spheres, models).
+    One(u32),
+    /// A scene triangle's three vertex materials, blended by the hit's barycentrics.
+    Blend { materials: [u32; 3], bary: [f64; 3] },
 }
 
 #[derive(Clone, Debug, Default)]
@@ -263,15 +251,6 @@ pub struct World {
 }
 
 impl World {
-    pub fn new(
-        spheres: Vec<Sphere>,
-        triangles: Vec<WorldTriangle>,
-        meshes: Vec<Mesh>,
-        models: Vec<Model>,
-    ) -> World {
-        World::with_movers(spheres, triangles, meshes, models, Vec::new(), (0.0, 0.0))
-    }
-
     /// A world with moving objects too, whose rays' times lie in `time_span`.
     pub fn with_movers(
         spheres: Vec<Sphere>,
@@ -360,76 +339,16 @@ impl World {
         let mut t_max = t_max;
         self.traverse_top::<true>(ray, &mut t_max, |range, t_max| {
             for slot in range {
-                match self.objects[slot] {
-                    Object::Sphere(i) => {
-                        let s = &self.spheres[i as usize];
-                        let local = s.transform.ray_to_local(ray);
-                        if let Some(t) = intersect_unit_sphere_scaled(
-                            local.origin,
-                            local.dir,
-                            s.radius,
-                            t_min,
-                            *t_max,
-                        ) {
-                            *t_max = t;
-                            best = Some(Hit {
-                                t,
-                                object: slot as u32,
-                                prim: 0,
-                                bary: [0.0; 3],
-                            });
-                        }
-                    }
-                    Object::Triangle(i) => {
-                        let [a, b, c] = self.triangles[i as usize].positions;
-                        let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
-                        if let Some(h) = intersect_triangle(tri_ray, a, b, c, t_min, *t_max) {
-                            *t_max = h.t;
-                            best = Some(Hit {
-                                t: h.t,
-                                object: slot as u32,
-                                prim: 0,
-                                bary: h.bary,
-                            });
-                        }
-                    }
-                    Object::Model(i) => {
-                        let model = &self.models[i as usize];
-                        let mesh = &self.meshes[model.mesh as usize];
-                        let local = model.transform.ray_to_local(ray);
-                        let tri_ray = TriangleRay::new(&local);
-                        let ray32 = TriangleRayF32::new(&tri_ray);
-                        mesh.bvh.traverse(&local, t_max, |tris, t_max| {
-                            any_candidate(&mesh.blocks, &mesh.corners, &ray32, tris, |tri| {
-                                let [a, b, c] = mesh.corners[tri];
-                                if let Some(h) =
-                                    intersect_triangle(&tri_ray, a, b, c, t_min, *t_max)
-                                {
-                                    *t_max = h.t;
-                                    best = Some(Hit {
-                                        t: h.t,
-                                        object: slot as u32,
-                                        prim: tri as u32,
-                                        bary: h.bary,
-                                    });
-                                }
-                                false
-                            })
-                        });
-                    }
-                    Object::Mover(i) => {
-                        if let Some((t, prim, bary)) =
-                            self.intersect_mover(i, ray, t_min, *t_max, false)
-                        {
-                            *t_max = t;
-                            best = Some(Hit {
-                                t,
-                                object: slot as u32,
-                                prim,
-                                bary,
-                            });
-                        }
-                    }
+                if let Some(h) =
+                    self.hit_object::<false>(slot, ray, t_min, *t_max, &mut world_tri_ray)
+                {
+                    *t_max = h.t;
+                    best = Some(Hit {
+                        t: h.t,
+                        object: slot as u32,
+                        prim: h.prim,
+                        bary: h.bary,
+                    });
                 }
             }
             false
@@ -437,27 +356,104 @@ impl World {
         best
     }
 
-    /// A moving object's closest hit in (t_min, t_max) at the ray's time: (t, triangle slot,
-    /// barycentrics). `any` stops at the first hit found.
-    fn intersect_mover(
+    /// Whether anything lies along the ray with t in (0, t_max).
+    pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
+        let mut world_tri_ray = None;
+        let mut t_limit = t_max;
+        self.traverse_top::<false>(ray, &mut t_limit, |mut range, t_max| {
+            range.any(|slot| {
+                self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
+                    .is_some()
+            })
+        })
+    }
+
+    /// The object in top-level slot `slot` against the ray, for t in (t_min, t_max): its
+    /// closest hit, or with `ANY` the first one found. `world_tri_ray` caches the ray's
+    /// set-up for world-space triangles.
+    #[inline(always)]
+    fn hit_object<const ANY: bool>(
+        &self,
+        slot: usize,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+        world_tri_ray: &mut Option<TriangleRay>,
+    ) -> Option<ObjectHit> {
+        match self.objects[slot] {
+            Object::Sphere(i) => {
+                let s = &self.spheres[i as usize];
+                let local = s.transform.ray_to_local(ray);
+                intersect_unit_sphere_scaled(local.origin, local.dir, s.radius, t_min, t_max)
+                    .map(ObjectHit::at)
+            }
+            Object::Triangle(i) => {
+                let [a, b, c] = self.triangles[i as usize].positions;
+                let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
+                intersect_triangle(tri_ray, a, b, c, t_min, t_max).map(|h| ObjectHit {
+                    t: h.t,
+                    prim: 0,
+                    bary: h.bary,
+                })
+            }
+            Object::Model(i) => {
+                let model = &self.models[i as usize];
+                let mesh = &self.meshes[model.mesh as usize];
+                let local = model.transform.ray_to_local(ray);
+                let tri_ray = TriangleRay::new(&local);
+                let ray32 = TriangleRayF32::new(&tri_ray);
+                let mut found = None;
+                let mut limit = t_max;
+                let leaf = |tris: std::ops::Range<usize>, t_max: &mut f64| {
+                    any_candidate(&mesh.blocks, &mesh.corners, &ray32, tris, |tri| {
+                        let [a, b, c] = mesh.corners[tri];
+                        let Some(h) = intersect_triangle(&tri_ray, a, b, c, t_min, *t_max) else {
+                            return false;
+                        };
+                        *t_max = h.t;
+                        found = Some(ObjectHit {
+                            t: h.t,
+                            prim: tri as u32,
+                            bary: h.bary,
+                        });
+                        ANY
+                    })
+                };
+                if ANY {
+                    mesh.bvh.traverse_any(&local, &mut limit, leaf);
+                } else {
+                    mesh.bvh.traverse(&local, &mut limit, leaf);
+                }
+                found
+            }
+            Object::Mover(i) => self.hit_mover::<ANY>(i, ray, t_min, t_max),
+        }
+    }
+
+    /// A moving object's hit, the ray taken into its local space at the ray's time.
+    fn hit_mover<const ANY: bool>(
         &self,
         index: u32,
         ray: &Ray,
         t_min: f64,
         t_max: f64,
-        any: bool,
-    ) -> Option<(f64, u32, [f64; 3])> {
+    ) -> Option<ObjectHit> {
         let mover = &self.movers[index as usize];
         let local = mover.transform_at(ray.time).ray_to_local(ray);
         match &mover.shape {
             MoverShape::Sphere { radius, .. } => {
                 intersect_unit_sphere_scaled(local.origin, local.dir, *radius, t_min, t_max)
-                    .map(|t| (t, 0, [0.0; 3]))
+                    .map(ObjectHit::at)
             }
             MoverShape::Triangle(tri) => {
                 let [a, b, c] = tri.positions;
-                intersect_triangle(&TriangleRay::new(&local), a, b, c, t_min, t_max)
-                    .map(|h| (h.t, 0, h.bary))
+                intersect_triangle(&TriangleRay::new(&local), a, b, c, t_min, t_max).map(|h| {
+                    ObjectHit {
+                        t: h.t,
+                        prim: 0,
+                        bary: h.bary,
+                    }
+                })
             }
             MoverShape::Model { mesh, .. } => {
                 let mesh = &self.meshes[*mesh as usize];
@@ -469,8 +465,12 @@ impl World {
                         let [a, b, c] = mesh.corners[tri];
                         if let Some(h) = intersect_triangle(&tri_ray, a, b, c, t_min, *t_max) {
                             *t_max = h.t;
-                            found = Some((h.t, tri as u32, h.bary));
-                            if any {
+                            found = Some(ObjectHit {
+                                t: h.t,
+                                prim: tri as u32,
+                                bary: h.bary,
+                            });
+                            if ANY {
                                 return true;
                             }
                         }
@@ -482,80 +482,26 @@ impl World {
         }
     }
 
-    /// Whether anything lies along the ray with t in (0, t_max).
-    pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
-        let mut world_tri_ray = None;
-        let mut t_limit = t_max;
-        self.traverse_top::<false>(ray, &mut t_limit, |range, t_max| {
-            for slot in range {
-                let blocked = match self.objects[slot] {
-                    Object::Sphere(i) => {
-                        let s = &self.spheres[i as usize];
-                        let local = s.transform.ray_to_local(ray);
-                        intersect_unit_sphere_scaled(local.origin, local.dir, s.radius, 0.0, *t_max)
-                            .is_some()
-                    }
-                    Object::Triangle(i) => {
-                        let [a, b, c] = self.triangles[i as usize].positions;
-                        let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
-                        intersect_triangle(tri_ray, a, b, c, 0.0, *t_max).is_some()
-                    }
-                    Object::Model(i) => {
-                        let model = &self.models[i as usize];
-                        let mesh = &self.meshes[model.mesh as usize];
-                        let local = model.transform.ray_to_local(ray);
-                        let tri_ray = TriangleRay::new(&local);
-                        let ray32 = TriangleRayF32::new(&tri_ray);
-                        let mut limit = *t_max;
-                        mesh.bvh.traverse_any(&local, &mut limit, |tris, t_max| {
-                            any_candidate(&mesh.blocks, &mesh.corners, &ray32, tris, |tri| {
-                                let [a, b, c] = mesh.corners[tri];
-                                intersect_triangle(&tri_ray, a, b, c, 0.0, *t_max).is_some()
-                            })
-                        })
-                    }
-                    Object::Mover(i) => self.intersect_mover(i, ray, 0.0, *t_max, true).is_some(),
-                };
-                if blocked {
-                    return true;
-                }
-            }
-            false
-        })
-    }
-
-    /// Position, normals and material values at `hit`.
-    pub fn surface(
-        &self,
-        ray: &Ray,
-        hit: &Hit,
-        materials: &[Material],
-        textures: &[Texture],
-        filter: TextureFilter,
-    ) -> Surface {
+    /// Position, normals, texture coordinates and material at `hit`.
+    pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch {
         let position = ray.at(hit.t);
-        let look = Lookup {
-            materials,
-            textures,
-            filter,
-        };
         match self.objects[hit.object as usize] {
             Object::Sphere(i) => {
                 let s = &self.spheres[i as usize];
-                look.sphere(position, &s.transform, s.radius, s.material)
+                sphere_patch(position, &s.transform, s.radius, s.material)
             }
-            Object::Triangle(i) => look.triangle(position, &self.triangles[i as usize], hit.bary),
+            Object::Triangle(i) => triangle_patch(position, &self.triangles[i as usize], hit.bary),
             Object::Model(i) => {
                 let model = &self.models[i as usize];
                 let mesh = &self.meshes[model.mesh as usize];
-                look.model(position, &model.transform, mesh, model.material, hit)
+                model_patch(position, &model.transform, mesh, model.material, hit)
             }
             Object::Mover(i) => {
                 let mover = &self.movers[i as usize];
                 let xf = mover.transform_at(ray.time);
                 match &mover.shape {
                     MoverShape::Sphere { radius, material } => {
-                        look.sphere(position, &xf, *radius, *material)
+                        sphere_patch(position, &xf, *radius, *material)
                     }
                     MoverShape::Triangle(local) => {
                         let world = WorldTriangle {
@@ -564,11 +510,11 @@ impl World {
                             tex_coords: local.tex_coords,
                             materials: local.materials,
                         };
-                        look.triangle(position, &world, hit.bary)
+                        triangle_patch(position, &world, hit.bary)
                     }
                     MoverShape::Model { mesh, material } => {
                         let mesh = &self.meshes[*mesh as usize];
-                        look.model(position, &xf, mesh, *material, hit)
+                        model_patch(position, &xf, mesh, *material, hit)
                     }
                 }
             }
@@ -576,109 +522,75 @@ impl World {
     }
 }
 
-/// Material and texture look-ups for [`World::surface`].
-struct Lookup<'a> {
-    materials: &'a [Material],
-    textures: &'a [Texture],
-    filter: TextureFilter,
+/// One object's hit: distance, triangle slot (within a mesh) and barycentrics.
+#[derive(Clone, Copy, Debug)]
+struct ObjectHit {
+    t: f64,
+    prim: u32,
+    bary: [f64; 3],
 }
 
-impl Lookup<'_> {
-    #[inline(always)]
-    fn texture(&self, material: &Material, uv: DVec2) -> DVec3 {
-        match material.texture {
-            Some(t) => self.textures[t as usize].sample(uv, self.filter),
-            None => DVec3::ONE,
+impl ObjectHit {
+    /// A hit with no triangle (spheres).
+    fn at(t: f64) -> ObjectHit {
+        ObjectHit {
+            t,
+            prim: 0,
+            bary: [0.0; 3],
         }
     }
+}
 
-    #[inline(always)]
-    fn sphere(&self, position: DVec3, xf: &Transform, radius: f64, material: u32) -> Surface {
-        let local = xf.to_local.transform_point3(position) / radius;
-        let unit = local.normalize_or_zero();
-        let normal = xf.normal_to_world(unit);
-        let m = &self.materials[material as usize];
-        Surface {
-            position,
-            normal,
-            geometric_normal: normal,
-            ambient: m.ambient,
-            diffuse: m.diffuse,
-            specular: m.specular,
-            ior: m.ior,
-            texture: self.texture(m, sphere_uv(unit)),
-            glossiness: m.glossiness,
-            absorption: m.absorption,
-        }
+#[inline(always)]
+fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> Patch {
+    let local = xf.to_local.transform_point3(position) / radius;
+    let unit = local.normalize_or_zero();
+    let normal = xf.normal_to_world(unit);
+    Patch {
+        position,
+        normal,
+        geometric_normal: normal,
+        uv: sphere_uv(unit),
+        material: MaterialAt::One(material),
     }
+}
 
-    #[inline(always)]
-    fn triangle(&self, position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Surface {
-        let [b0, b1, b2] = bary;
-        let [p0, p1, p2] = t.positions;
-        let geometric = (p1 - p0).cross(p2 - p0).normalize_or_zero();
-        let interpolated = b0 * t.normals[0] + b1 * t.normals[1] + b2 * t.normals[2];
-        let uv = b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2];
-        let ms = t.materials.map(|m| &self.materials[m as usize]);
-        let blend = |f: &dyn Fn(&Material) -> DVec3| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
-        let scalar = |f: &dyn Fn(&Material) -> f64| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
-        let ior = scalar(&|m| m.ior);
-        Surface {
-            position,
-            normal: interpolated.try_normalize().unwrap_or(geometric),
-            geometric_normal: geometric,
-            ambient: blend(&|m| m.ambient),
-            diffuse: blend(&|m| m.diffuse),
-            specular: blend(&|m| m.specular),
-            ior,
-            texture: blend(&|m| self.texture(m, uv)),
-            // The effects' blends only where a vertex material uses them.
-            glossiness: if ms.iter().any(|m| m.glossiness != 0.0) {
-                scalar(&|m| m.glossiness)
-            } else {
-                0.0
-            },
-            absorption: if ior != 0.0 {
-                blend(&|m| m.absorption)
-            } else {
-                DVec3::ZERO
-            },
-        }
+#[inline(always)]
+fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch {
+    let [b0, b1, b2] = bary;
+    let [p0, p1, p2] = t.positions;
+    let geometric = (p1 - p0).cross(p2 - p0).normalize_or_zero();
+    let interpolated = b0 * t.normals[0] + b1 * t.normals[1] + b2 * t.normals[2];
+    Patch {
+        position,
+        normal: interpolated.try_normalize().unwrap_or(geometric),
+        geometric_normal: geometric,
+        uv: b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2],
+        material: MaterialAt::Blend {
+            materials: t.materials,
+            bary,
+        },
     }
+}
 
-    #[inline(always)]
-    fn model(
-        &self,
-        position: DVec3,
-        xf: &Transform,
-        mesh: &Mesh,
-        material: u32,
-        hit: &Hit,
-    ) -> Surface {
-        let [b0, b1, b2] = hit.bary;
-        let [i0, i1, i2] = mesh.indices[hit.prim as usize].map(|i| i as usize);
-        let [p0, p1, p2] = mesh.corners[hit.prim as usize];
-        let geometric = xf.normal_to_world((p1 - p0).cross(p2 - p0));
-        let local_n = b0 * mesh.normals[i0] + b1 * mesh.normals[i1] + b2 * mesh.normals[i2];
-        let normal = xf.normal_to_world(local_n);
-        let uv = b0 * mesh.tex_coords[i0] + b1 * mesh.tex_coords[i1] + b2 * mesh.tex_coords[i2];
-        let m = &self.materials[material as usize];
-        Surface {
-            position,
-            normal: if normal == DVec3::ZERO {
-                geometric
-            } else {
-                normal
-            },
-            geometric_normal: geometric,
-            ambient: m.ambient,
-            diffuse: m.diffuse,
-            specular: m.specular,
-            ior: m.ior,
-            texture: self.texture(m, uv),
-            glossiness: m.glossiness,
-            absorption: m.absorption,
-        }
+#[inline(always)]
+fn model_patch(position: DVec3, xf: &Transform, mesh: &Mesh, material: u32, hit: &Hit) -> Patch {
+    let [b0, b1, b2] = hit.bary;
+    let [i0, i1, i2] = mesh.indices[hit.prim as usize].map(|i| i as usize);
+    let [p0, p1, p2] = mesh.corners[hit.prim as usize];
+    let geometric = xf.normal_to_world((p1 - p0).cross(p2 - p0));
+    let local_n = b0 * mesh.normals[i0] + b1 * mesh.normals[i1] + b2 * mesh.normals[i2];
+    let normal = xf.normal_to_world(local_n);
+    Patch {
+        position,
+        normal: if normal == DVec3::ZERO {
+            geometric
+        } else {
+            normal
+        },
+        geometric_normal: geometric,
+        uv: b0 * mesh.tex_coords[i0] + b1 * mesh.tex_coords[i1] + b2 * mesh.tex_coords[i2],
+        material: MaterialAt::One(material),
     }
 }
 
@@ -706,7 +618,7 @@ mod tests {
             scale: DVec3::new(2.0, 0.5, 1.0),
         };
         let motion = Motion {
-            keys: vec![crate::scene::Keyframe {
+            keys: vec![crate::geometry::Keyframe {
                 time: 1.5,
                 transform: TransformDesc {
                     position: DVec3::new(-2.0, 3.0, 1.0),
@@ -732,7 +644,8 @@ mod tests {
             let t = span.1 * i as f64 / 997.0;
             let xf = mover.transform_at(t);
             for j in 0..64 {
-                let d = crate::shade::uniform_sphere(j as f64 / 64.0, (j * 37 % 64) as f64 / 64.0);
+                let d =
+                    crate::sampler::uniform_sphere(j as f64 / 64.0, (j * 37 % 64) as f64 / 64.0);
                 let p = xf.to_world.transform_point3(0.7 * d);
                 assert!(
                     p.cmpge(bounds.min).all() && p.cmple(bounds.max).all(),

@@ -401,7 +401,7 @@ fn a_frame_equals_the_static_scene_at_its_time() {
     )
     .err()
     .unwrap();
-    assert!(err.contains("out of range"), "{err}");
+    assert!(err.to_string().contains("out of range"), "{err}");
 }
 
 #[test]

@@ -19,6 +19,26 @@ pub fn available_cores() -> usize {
         .unwrap_or(1)
 }
 
+/// Resolves on SIGINT or SIGTERM (on Ctrl-C where those cannot be watched): the one stop
+/// signal the worker and the coordinator's commands wait for.
+pub async fn stop_signal() {
+    use tokio::signal::unix::{signal, SignalKind};
+    match (
+        signal(SignalKind::interrupt()),
+        signal(SignalKind::terminate()),
+    ) {
+        (Ok(mut int), Ok(mut term)) => {
+            tokio::select! {
+                _ = int.recv() => {}
+                _ = term.recv() => {}
+            }
+        }
+        _ => {
+            let _ = tokio::signal::ctrl_c().await;
+        }
+    }
+}
+
 /// Logs to stderr (one line per tile for workers), `RUST_LOG` overriding `default` filter.
 pub fn init_logging(default: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()

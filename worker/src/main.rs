@@ -81,11 +81,11 @@ fn main() -> ExitCode {
         };
         let (stop, shutdown) = Shutdown::new();
         tokio::spawn(async move {
-            wait_for_signal().await;
+            worker::stop_signal().await;
             tracing::info!("stopping: handing back the current tile");
             let _ = stop.send(true);
             // A second signal means "now".
-            wait_for_signal().await;
+            worker::stop_signal().await;
             std::process::exit(130);
         });
         tracing::info!(
@@ -109,22 +109,4 @@ fn main() -> ExitCode {
             }
         }
     })
-}
-
-async fn wait_for_signal() {
-    use tokio::signal::unix::{signal, SignalKind};
-    match (
-        signal(SignalKind::interrupt()),
-        signal(SignalKind::terminate()),
-    ) {
-        (Ok(mut int), Ok(mut term)) => {
-            tokio::select! {
-                _ = int.recv() => {}
-                _ = term.recv() => {}
-            }
-        }
-        _ => {
-            let _ = tokio::signal::ctrl_c().await;
-        }
-    }
 }

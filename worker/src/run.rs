@@ -232,7 +232,7 @@ impl Worker {
             );
             tokio::task::spawn_blocking(move || {
                 pool.install(|| -> Result<Option<Image>, String> {
-                    let renderer = Renderer::new(&scene, &settings)?;
+                    let renderer = Renderer::new(&scene, &settings).map_err(|e| e.to_string())?;
                     Ok(renderer.render_tile(rect, &cancel))
                 })
             })

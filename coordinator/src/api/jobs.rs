@@ -280,7 +280,7 @@ pub async fn bundle(State(app): AppState, Path(id): Path<String>) -> ApiResult<J
 /// The frames a job asks for must exist in its scene.
 fn check_frames(spec: &JobSpec, frame_count: u32) -> Result<(), String> {
     match spec.frames {
-        Some(range) => range.validate(frame_count),
+        Some(range) => range.validate(frame_count).map_err(|e| e.to_string()),
         None if spec.render.frame >= frame_count => Err(format!(
             "frame {} is out of range: the scene has {frame_count} frame(s), numbered from 0",
             spec.render.frame

@@ -11,8 +11,8 @@ use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
 use protocol::{JobSpec, DEFAULT_TILE_SIZE};
-use tracer_core::settings::parse_vec3;
-use tracer_core::{CameraOverride, CausticsSettings, FrameRange, RenderSettings, TextureFilter};
+use tracer_core::cli_args::{error_chain, exit, RenderArgs};
+pub use worker::stop_signal;
 
 pub use submit::collect_submission;
 
@@ -40,55 +40,12 @@ pub enum Command {
     Report(report::ReportArgs),
 }
 
-/// Render settings, as `tracer render` takes them, plus the farm's tile size.
+/// Render settings, declared once in tracer-core and shared with `tracer render`, plus the
+/// farm's tile size and a job name.
 #[derive(Args, Debug, Clone)]
 pub struct SettingsArgs {
-    /// Image width in pixels [default: 800].
-    #[arg(long)]
-    pub width: Option<u32>,
-    /// Image height in pixels [default: 600].
-    #[arg(long)]
-    pub height: Option<u32>,
-    /// Samples per pixel [default: 4].
-    #[arg(long)]
-    pub spp: Option<u32>,
-    /// Ray depth, the eye ray included [default: 5].
-    #[arg(long)]
-    pub depth: Option<u32>,
-    /// Random seed [default: 0].
-    #[arg(long)]
-    pub seed: Option<u64>,
-    /// Camera position x,y,z (with --look-at), replacing the scene's camera.
-    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
-    pub camera_pos: Option<[f64; 3]>,
-    /// Point the camera looks at, x,y,z.
-    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
-    pub look_at: Option<[f64; 3]>,
-    /// Camera up vector x,y,z [default: 0,1,0].
-    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
-    pub up: Option<[f64; 3]>,
-    /// Bilinear texture filtering instead of nearest texel.
-    #[arg(long)]
-    pub bilinear: bool,
-    /// Render frames A through B (inclusive) of an animated scene as one job; the PNGs are
-    /// written with the frame number inserted: out.png → out_0003.png.
-    #[arg(long, conflicts_with = "frame")]
-    pub frames: Option<FrameRange>,
-    /// Render this frame of an animated scene (0-based) [default: 0].
-    #[arg(long)]
-    pub frame: Option<u32>,
-    /// Caustics by photon mapping, even if the scene has no <caustics> element.
-    #[arg(long, conflicts_with = "no_caustics")]
-    pub caustics: bool,
-    /// No caustics, even if the scene asks for them.
-    #[arg(long)]
-    pub no_caustics: bool,
-    /// Caustic photons to emit (turns caustics on; overrides the scene's count).
-    #[arg(long, conflicts_with = "no_caustics")]
-    pub photons: Option<u32>,
-    /// Caustic gather radius in scene units (turns caustics on; overrides the scene's).
-    #[arg(long, conflicts_with = "no_caustics")]
-    pub photon_radius: Option<f64>,
+    #[command(flatten)]
+    pub render: RenderArgs,
     /// Tile edge in pixels.
     #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
     pub tile_size: u32,
@@ -98,42 +55,71 @@ pub struct SettingsArgs {
 }
 
 impl SettingsArgs {
-    pub fn to_spec(&self) -> Result<JobSpec, String> {
-        let d = RenderSettings::default();
-        let camera = match (self.camera_pos, self.look_at) {
-            (Some(position), Some(look_at)) => Some(CameraOverride {
-                position,
-                look_at,
-                up: self.up.unwrap_or([0.0, 1.0, 0.0]),
-            }),
-            (None, None) if self.up.is_none() => None,
-            _ => return Err("--camera-pos and --look-at go together (--up needs both)".into()),
-        };
+    /// The job the flags ask for, its settings checked before anything is read or sent.
+    pub fn to_spec(&self) -> Result<JobSpec, Failure> {
+        let render = self.render.to_settings();
+        render.validate().map_err(Failure::usage)?;
         Ok(JobSpec {
             name: self.name.clone(),
-            render: RenderSettings {
-                width: self.width.unwrap_or(d.width),
-                height: self.height.unwrap_or(d.height),
-                spp: self.spp.unwrap_or(d.spp),
-                max_depth: self.depth.unwrap_or(d.max_depth),
-                seed: self.seed.unwrap_or(d.seed),
-                camera,
-                texture_filter: if self.bilinear {
-                    TextureFilter::Bilinear
-                } else {
-                    d.texture_filter
-                },
-                frame: self.frame.unwrap_or(d.frame),
-                caustics: CausticsSettings::from_flags(
-                    self.caustics,
-                    self.no_caustics,
-                    self.photons,
-                    self.photon_radius,
-                ),
-            },
-            frames: self.frames,
+            render,
+            frames: self.render.frames,
             tile_size: self.tile_size,
         })
+    }
+}
+
+/// Why a command failed: the message printed (every cause in the chain) and the exit code
+/// ([`exit`]: usage, scene, anything else).
+#[derive(Debug)]
+pub struct Failure {
+    pub code: u8,
+    pub message: String,
+}
+
+impl Failure {
+    fn with(code: u8, error: impl Into<Box<dyn std::error::Error>>) -> Self {
+        Failure {
+            code,
+            message: error_chain(error.into().as_ref()),
+        }
+    }
+
+    /// Bad flags or settings.
+    pub fn usage(error: impl Into<Box<dyn std::error::Error>>) -> Self {
+        Self::with(exit::USAGE, error)
+    }
+
+    /// A scene that cannot be read or loaded.
+    pub fn scene(error: impl Into<Box<dyn std::error::Error>>) -> Self {
+        Self::with(exit::SCENE, error)
+    }
+
+    /// Anything else: the farm, the network, the disk.
+    pub fn failed(error: impl Into<Box<dyn std::error::Error>>) -> Self {
+        Self::with(exit::FAILURE, error)
+    }
+
+    /// Prints the failure for `command` and gives its exit code.
+    fn report(&self, command: &str) -> ExitCode {
+        eprintln!("coordinator {command}: {}", self.message);
+        ExitCode::from(self.code)
+    }
+}
+
+impl From<String> for Failure {
+    fn from(message: String) -> Self {
+        Failure {
+            code: exit::FAILURE,
+            message,
+        }
+    }
+}
+
+/// The exit code of a command that returned `result`.
+fn finish(command: &str, result: Result<(), Failure>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(failure) => failure.report(command),
     }
 }
 
@@ -171,10 +157,7 @@ async fn download(
     output: &Path,
 ) -> Result<Vec<PathBuf>, String> {
     let Some(range) = job.spec.frames else {
-        let png = client
-            .image(job.id)
-            .await
-            .map_err(|e| submit::describe(&e))?;
+        let png = client.image(job.id).await.map_err(|e| e.to_string())?;
         write_png(output, &png)?;
         return Ok(vec![output.to_path_buf()]);
     };
@@ -183,7 +166,7 @@ async fn download(
         let png = client
             .frame_image(job.id, frame)
             .await
-            .map_err(|e| submit::describe(&e))?;
+            .map_err(|e| e.to_string())?;
         let path = tracer_core::settings::numbered_path(output, frame);
         write_png(&path, &png)?;
         written.push(path);
@@ -205,37 +188,10 @@ fn describe_written(written: &[PathBuf]) -> String {
     }
 }
 
-/// Where the PNG goes when `-o` is not given: the scene's name with `.png`, here.
-fn default_output(scene: &Path) -> PathBuf {
-    let stem = scene
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "render".into());
-    PathBuf::from(format!("{stem}.png"))
-}
-
-/// Resolves on SIGINT or SIGTERM.
-pub async fn stop_signal() {
-    use tokio::signal::unix::{signal, SignalKind};
-    match (
-        signal(SignalKind::interrupt()),
-        signal(SignalKind::terminate()),
-    ) {
-        (Ok(mut int), Ok(mut term)) => {
-            tokio::select! {
-                _ = int.recv() => {}
-                _ = term.recv() => {}
-            }
-        }
-        _ => {
-            let _ = tokio::signal::ctrl_c().await;
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tracer_core::RenderSettings;
 
     #[test]
     fn settings_default_like_the_tracer() {
@@ -249,13 +205,13 @@ mod tests {
     }
 
     #[test]
-    fn camera_flags_go_together() {
+    fn negative_camera_coordinates_parse_and_camera_flags_go_together() {
         let cli = Cli::parse_from([
             "coordinator",
             "render",
             "a.scene",
             "--camera-pos",
-            "-1,2,3",
+            "-10,4,10",
             "--look-at",
             "0,0,0",
             "--spp",
@@ -268,15 +224,60 @@ mod tests {
         };
         let spec = args.settings.to_spec().unwrap();
         let cam = spec.render.camera.unwrap();
-        assert_eq!(cam.position, [-1.0, 2.0, 3.0]);
+        assert_eq!(cam.position, [-10.0, 4.0, 10.0]);
         assert_eq!(cam.up, [0.0, 1.0, 0.0]);
         assert_eq!((spec.render.spp, spec.tile_size), (2, 16));
-        let half = Cli::parse_from(["coordinator", "render", "a.scene", "--look-at", "0,0,0"]);
-        let Command::Render(args) = half.command else {
+        let submit = Cli::parse_from([
+            "coordinator",
+            "submit",
+            "--server",
+            "http://x",
+            "a.scene",
+            "--camera-pos",
+            "-1,-2,-3",
+            "--look-at",
+            "0,0,0",
+        ]);
+        let Command::Submit(args) = submit.command else {
             panic!()
         };
-        assert!(args.settings.to_spec().is_err());
-        assert!(parse_vec3("1,2").is_err());
-        assert!(parse_vec3("1,b,2").is_err());
+        let cam = args.settings.to_spec().unwrap().render.camera.unwrap();
+        assert_eq!(cam.position, [-1.0, -2.0, -3.0]);
+        let half = Cli::try_parse_from(["coordinator", "render", "a.scene", "--look-at", "0,0,0"]);
+        assert!(half.is_err());
+    }
+
+    #[test]
+    fn a_missing_scene_file_is_a_scene_error_without_a_position() {
+        let spec = JobSpec {
+            name: None,
+            render: RenderSettings::default(),
+            frames: None,
+            tile_size: DEFAULT_TILE_SIZE,
+        };
+        let failure = collect_submission(Path::new("nosuch.scene"), spec).unwrap_err();
+        assert_eq!(failure.code, exit::SCENE);
+        assert_eq!(
+            failure.message,
+            "cannot read nosuch.scene: No such file or directory (os error 2)"
+        );
+    }
+
+    #[test]
+    fn bad_settings_and_outputs_are_usage_errors() {
+        let cli = Cli::parse_from(["coordinator", "render", "a.scene", "--spp", "0"]);
+        let Command::Render(args) = cli.command else {
+            panic!()
+        };
+        let failure = args.settings.to_spec().unwrap_err();
+        assert_eq!(failure.code, exit::USAGE);
+        assert!(failure.message.contains("spp"), "{}", failure.message);
+        let cli = Cli::parse_from(["coordinator", "render", "a.scene", "-o", "x.jpg", "-q"]);
+        let Command::Render(args) = cli.command else {
+            panic!()
+        };
+        assert!(args.output.quiet);
+        let refused = args.output.path_for(&args.scene).unwrap_err();
+        assert!(refused.to_string().contains("only PNG"), "{refused}");
     }
 }

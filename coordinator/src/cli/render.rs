@@ -7,19 +7,19 @@ use std::time::{Duration, Instant};
 
 use clap::Args;
 use protocol::JobState;
+use tracer_core::cli_args::OutputArgs;
 use worker::available_cores;
 
 use super::submit::{collect_submission, describe, wait_for};
-use super::SettingsArgs;
+use super::{Failure, SettingsArgs};
 use crate::embedded::EmbeddedFarm;
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
     /// The scene file; its assets are found beside it (or in its parent folder).
     pub scene: PathBuf,
-    /// Where to write the PNG [default: <scene name>.png].
-    #[arg(short, long)]
-    pub output: Option<PathBuf>,
+    #[command(flatten)]
+    pub output: OutputArgs,
     /// Local workers [default: 1, rendering with every core].
     #[arg(long)]
     pub workers: Option<usize>,
@@ -35,23 +35,16 @@ pub struct RenderArgs {
 
 pub fn run(args: RenderArgs) -> ExitCode {
     worker::init_logging("warn");
-    match render(args) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("coordinator render: {e}");
-            ExitCode::from(1)
-        }
-    }
+    super::finish("render", render(args))
 }
 
-fn render(args: RenderArgs) -> Result<(), String> {
+fn render(args: RenderArgs) -> Result<(), Failure> {
     let start = Instant::now();
+    // Everything the flags can get wrong is refused before the scene is read.
+    let output = args.output.path_for(&args.scene).map_err(Failure::usage)?;
     let spec = args.settings.to_spec()?;
     let submission = collect_submission(&args.scene, spec)?;
-    let output = args
-        .output
-        .clone()
-        .unwrap_or_else(|| super::default_output(&args.scene));
+    let quiet = args.output.quiet;
     let threads = args.threads.unwrap_or_else(available_cores).max(1);
     let workers = args.workers.unwrap_or(1);
     let runtime = super::runtime()?;
@@ -63,7 +56,7 @@ fn render(args: RenderArgs) -> Result<(), String> {
             farm.url(),
             farm.token()
         );
-        let result = submit_and_wait(&farm, &submission, &output, start).await;
+        let result = submit_and_wait(&farm, &submission, &output, quiet, start).await;
         farm.shutdown().await;
         result
     })
@@ -75,11 +68,12 @@ async fn submit_and_wait(
     farm: &EmbeddedFarm,
     submission: &protocol::client::Submission,
     output: &std::path::Path,
+    quiet: bool,
     start: Instant,
-) -> Result<(), String> {
+) -> Result<(), Failure> {
     let client = farm.client();
     let (workers, threads) = farm.size();
-    let job = client.submit(submission).await.map_err(|e| describe(&e))?;
+    let job = client.submit(submission).await.map_err(describe)?;
     eprintln!(
         "rendering {} at {}x{}, {} spp: {} tiles on {workers} worker(s), {threads} thread(s)",
         job.scene_file,
@@ -89,12 +83,12 @@ async fn submit_and_wait(
         job.tiles_total
     );
     let finished = tokio::select! {
-        done = wait_for(client, job.id, Duration::from_millis(20)) => {
-            done.map_err(|e| describe(&e))?
+        done = wait_for(client, job.id, Duration::from_millis(20), quiet) => {
+            done.map_err(describe)?
         }
         _ = super::stop_signal() => {
             let _ = client.cancel(job.id).await;
-            return Err("interrupted; the job was cancelled".to_string());
+            return Err(Failure::failed("interrupted; the job was cancelled"));
         }
     };
     match finished.state {
@@ -107,10 +101,10 @@ async fn submit_and_wait(
             );
             Ok(())
         }
-        JobState::Failed => Err(format!(
+        JobState::Failed => Err(Failure::failed(format!(
             "the render failed: {}",
             finished.error.unwrap_or_default()
-        )),
-        other => Err(format!("the job ended {}", other.as_str())),
+        ))),
+        other => Err(Failure::failed(format!("the job ended {}", other.as_str()))),
     }
 }

@@ -8,14 +8,16 @@ use std::time::{Duration, Instant};
 
 use clap::Args;
 use protocol::{JobSpec, JobState, DEFAULT_TILE_SIZE};
+use tracer_core::cli_args::load_scene;
 use tracer_core::convergence::Measurement;
 use tracer_core::report::{
     measure, print_row, reference_image, timed_render, write_report, ReportMeta,
 };
-use tracer_core::{Image, RenderSettings, Scene};
+use tracer_core::{Image, RenderSettings};
 use worker::available_cores;
 
 use super::submit::{collect_submission, describe};
+use super::Failure;
 use crate::embedded::EmbeddedFarm;
 
 #[derive(Args, Debug)]
@@ -56,13 +58,7 @@ pub struct ReportArgs {
 
 pub fn run(args: ReportArgs) -> ExitCode {
     worker::init_logging("warn");
-    match report(args) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("coordinator report: {e}");
-            ExitCode::from(1)
-        }
-    }
+    super::finish("report", report(args))
 }
 
 fn plural(n: usize) -> &'static str {
@@ -75,13 +71,13 @@ fn plural(n: usize) -> &'static str {
 
 /// Every image is compared as the 8-bit PNG a user gets, the reference included, so the
 /// farm's PNGs and the in-process renders are measured alike.
-fn as_delivered(image: &Image) -> Result<Image, String> {
-    Image::from_png_bytes(&image.to_png())
+fn as_delivered(image: &Image) -> Result<Image, Failure> {
+    Image::from_png_bytes(&image.to_png()).map_err(Failure::failed)
 }
 
-fn report(args: ReportArgs) -> Result<(), String> {
+fn report(args: ReportArgs) -> Result<(), Failure> {
     if args.spp.is_empty() || args.spp.contains(&0) {
-        return Err("--spp needs sample counts of at least 1".into());
+        return Err(Failure::usage("--spp needs sample counts of at least 1"));
     }
     let threads = args.threads.unwrap_or_else(available_cores).max(1);
     let mut workers = args.workers.clone();
@@ -90,22 +86,22 @@ fn report(args: ReportArgs) -> Result<(), String> {
         workers.dedup();
     }
     if let Some(bad) = workers.iter().find(|&&w| w == 0 || w > threads) {
-        return Err(format!(
+        return Err(Failure::usage(format!(
             "--workers {bad}: each count must be between 1 and the {threads} thread(s)"
-        ));
+        )));
     }
-    let scene = Scene::load(&args.scene).map_err(|e| e.to_string())?;
+    let scene = load_scene(&args.scene).map_err(Failure::scene)?;
     let settings = RenderSettings {
         width: args.width,
         height: args.height,
         seed: args.seed,
         ..RenderSettings::default()
     };
-    settings.validate()?;
+    settings.validate().map_err(Failure::usage)?;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
-        .map_err(|e| e.to_string())?;
+        .map_err(Failure::failed)?;
 
     let (reference, reference_note) = reference_image(
         &scene,
@@ -113,7 +109,8 @@ fn report(args: ReportArgs) -> Result<(), String> {
         args.reference.as_deref(),
         args.reference_spp,
         &pool,
-    )?;
+    )
+    .map_err(Failure::failed)?;
     // Compared as delivered, like every measured image.
     let reference = as_delivered(&reference)?;
 
@@ -130,14 +127,11 @@ fn report(args: ReportArgs) -> Result<(), String> {
                 spp,
                 ..settings.clone()
             };
-            let (image, seconds) = timed_render(&scene, &s, &pool)?;
-            record(measure(
-                &config,
-                spp,
-                seconds,
-                &as_delivered(&image)?,
-                &reference,
-            )?);
+            let (image, seconds) = timed_render(&scene, &s, &pool).map_err(Failure::failed)?;
+            record(
+                measure(&config, spp, seconds, &as_delivered(&image)?, &reference)
+                    .map_err(Failure::failed)?,
+            );
         }
     }
 
@@ -170,7 +164,7 @@ fn report(args: ReportArgs) -> Result<(), String> {
             result.map(|()| out)
         })?;
         for (spp, (image, seconds)) in measured {
-            record(measure(&config, spp, seconds, &image, &reference)?);
+            record(measure(&config, spp, seconds, &image, &reference).map_err(Failure::failed)?);
         }
     }
 
@@ -188,7 +182,7 @@ fn report(args: ReportArgs) -> Result<(), String> {
             args.tile_size
         ),
     };
-    write_report(&args.output, &meta, &rows)?;
+    write_report(&args.output, &meta, &rows).map_err(Failure::failed)?;
     eprintln!(
         "wrote {}/report.csv, report.md and error_vs_time.png",
         args.output.display()
@@ -202,27 +196,28 @@ async fn render_through(
     farm: &EmbeddedFarm,
     scene: &std::path::Path,
     spec: JobSpec,
-) -> Result<(Image, f64), String> {
+) -> Result<(Image, f64), Failure> {
     let submission = collect_submission(scene, spec)?;
     let client = farm.client();
     let started = Instant::now();
-    let job = client.submit(&submission).await.map_err(|e| describe(&e))?;
+    let job = client.submit(&submission).await.map_err(describe)?;
     let finished = loop {
-        let info = client.job(job.id).await.map_err(|e| describe(&e))?;
+        let info = client.job(job.id).await.map_err(describe)?;
         if info.state.is_finished() {
             break info;
         }
         tokio::time::sleep(Duration::from_millis(5)).await;
     };
     if finished.state != JobState::Done {
-        return Err(format!(
+        return Err(Failure::failed(format!(
             "job {} ended {}: {}",
             job.id,
             finished.state.as_str(),
             finished.error.unwrap_or_default()
-        ));
+        )));
     }
-    let png = client.image(job.id).await.map_err(|e| describe(&e))?;
+    let png = client.image(job.id).await.map_err(describe)?;
     let seconds = started.elapsed().as_secs_f64();
-    Ok((Image::from_png_bytes(&png)?, seconds))
+    let image = Image::from_png_bytes(&png).map_err(Failure::failed)?;
+    Ok((image, seconds))
 }

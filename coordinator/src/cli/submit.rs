@@ -9,10 +9,11 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use protocol::client::{Client, ClientError, Submission};
 use protocol::{JobInfo, JobSpec, JobState};
+use tracer_core::cli_args::{exit, OutputArgs};
 use tracer_core::scene::SceneDescription;
 use tracer_core::{AssetSource, FsAssets};
 
-use super::SettingsArgs;
+use super::{Failure, SettingsArgs};
 
 #[derive(Args, Debug)]
 pub struct SubmitArgs {
@@ -24,9 +25,9 @@ pub struct SubmitArgs {
     pub token: Option<String>,
     /// The scene file; its assets are found beside it (or in its parent folder).
     pub scene: PathBuf,
-    /// Download the finished image here (implies --wait).
-    #[arg(short, long)]
-    pub output: Option<PathBuf>,
+    /// `-o`: download the finished image there (implies --wait).
+    #[command(flatten)]
+    pub output: OutputArgs,
     /// Wait for the job to finish, showing progress.
     #[arg(long)]
     pub wait: bool,
@@ -35,20 +36,20 @@ pub struct SubmitArgs {
 }
 
 /// Reads a scene file and exactly the assets it references.
-pub fn collect_submission(scene: &Path, spec: JobSpec) -> Result<Submission, String> {
-    let text =
-        std::fs::read_to_string(scene).map_err(|e| format!("reading {}: {e}", scene.display()))?;
+pub fn collect_submission(scene: &Path, spec: JobSpec) -> Result<Submission, Failure> {
+    let text = std::fs::read_to_string(scene)
+        .map_err(|e| Failure::scene(format!("cannot read {}: {e}", scene.display())))?;
     let scene_file = scene
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "scene.scene".into());
-    let desc = SceneDescription::parse(&text, &scene_file).map_err(|e| e.to_string())?;
+    let desc = SceneDescription::parse(&text, &scene_file).map_err(Failure::scene)?;
     let source = FsAssets::for_scene(scene);
     let mut assets = Vec::new();
     for path in desc.referenced_assets() {
         let bytes = source
             .read(&path)
-            .map_err(|e| format!("{scene_file}: asset {path}: {e}"))?;
+            .map_err(|e| Failure::scene(format!("{scene_file}: asset {path}: {e}")))?;
         assets.push((path, bytes));
     }
     Ok(Submission {
@@ -59,21 +60,41 @@ pub fn collect_submission(scene: &Path, spec: JobSpec) -> Result<Submission, Str
     })
 }
 
-/// An error from the coordinator, with a scene error's location when it has one.
-pub fn describe(e: &ClientError) -> String {
-    match e {
-        ClientError::Api { body, status, .. } => match (&body.file, body.line) {
-            (Some(_), Some(_)) => format!("{} (HTTP {status})", body.error),
-            _ => e.to_string(),
-        },
-        _ => e.to_string(),
+/// An error from the coordinator, with a scene error's location when it has one: a scene
+/// the farm refused exits as a scene error, other refused requests as usage errors.
+pub fn describe(e: ClientError) -> Failure {
+    let refused = match &e {
+        ClientError::Api { body, status, .. } => {
+            if let (Some(_), Some(_)) = (&body.file, body.line) {
+                return Failure {
+                    code: exit::SCENE,
+                    message: format!("{} (HTTP {status})", body.error),
+                };
+            }
+            (400..500).contains(status)
+        }
+        _ => false,
+    };
+    if refused {
+        Failure::usage(e)
+    } else {
+        Failure::failed(e)
     }
 }
 
 /// Polls a job until it finishes, drawing a progress bar on stderr (hidden when it is not a
 /// terminal). Returns the finished job.
-pub async fn wait_for(client: &Client, id: u64, every: Duration) -> Result<JobInfo, ClientError> {
-    let bar = ProgressBar::new(0);
+pub async fn wait_for(
+    client: &Client,
+    id: u64,
+    every: Duration,
+    quiet: bool,
+) -> Result<JobInfo, ClientError> {
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(0)
+    };
     bar.set_style(
         ProgressStyle::with_template(
             "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} tiles {msg}",
@@ -115,66 +136,59 @@ pub async fn wait_for(client: &Client, id: u64, every: Duration) -> Result<JobIn
 
 pub fn run(args: SubmitArgs) -> ExitCode {
     worker::init_logging("warn");
-    let fail = |msg: String| {
-        eprintln!("coordinator submit: {msg}");
-        ExitCode::from(1)
+    super::finish("submit", submit(args))
+}
+
+fn submit(args: SubmitArgs) -> Result<(), Failure> {
+    let output = match &args.output.output {
+        Some(_) => Some(args.output.path_for(&args.scene).map_err(Failure::usage)?),
+        None => None,
     };
-    let spec = match args.settings.to_spec() {
-        Ok(s) => s,
-        Err(e) => return fail(e),
-    };
-    let submission = match collect_submission(&args.scene, spec) {
-        Ok(s) => s,
-        Err(e) => return fail(e),
-    };
-    let runtime = match super::runtime() {
-        Ok(rt) => rt,
-        Err(e) => return fail(e),
-    };
+    let spec = args.settings.to_spec()?;
+    let submission = collect_submission(&args.scene, spec)?;
+    let runtime = super::runtime()?;
     runtime.block_on(async move {
-        let client = match Client::new(&args.server, args.token.clone()) {
-            Ok(c) => c,
-            Err(e) => return fail(e.to_string()),
-        };
-        let job = match client.submit(&submission).await {
-            Ok(job) => job,
-            Err(e) => return fail(describe(&e)),
-        };
+        let client = Client::new(&args.server, args.token.clone()).map_err(Failure::usage)?;
+        let job = client.submit(&submission).await.map_err(describe)?;
         eprintln!(
             "submitted job {} ({}, {} tiles)",
             job.id, job.name, job.tiles_total
         );
         // The job id alone on stdout, for scripts.
         println!("{}", job.id);
-        if !args.wait && args.output.is_none() {
-            return ExitCode::SUCCESS;
+        if !args.wait && output.is_none() {
+            return Ok(());
         }
-        let done = match wait_for(&client, job.id, Duration::from_millis(250)).await {
-            Ok(done) => done,
-            Err(e) => return fail(describe(&e)),
-        };
+        let every = Duration::from_millis(250);
+        let done = wait_for(&client, job.id, every, args.output.quiet)
+            .await
+            .map_err(describe)?;
         match done.state {
             JobState::Done => {}
             JobState::Failed => {
-                return fail(format!(
+                return Err(Failure::failed(format!(
                     "job {} failed: {}",
                     done.id,
                     done.error.unwrap_or_default()
-                ))
+                )))
             }
-            other => return fail(format!("job {} ended {}", done.id, other.as_str())),
+            other => {
+                return Err(Failure::failed(format!(
+                    "job {} ended {}",
+                    done.id,
+                    other.as_str()
+                )))
+            }
         }
         eprintln!(
             "job {} done in {:.2}s",
             done.id,
             done.elapsed_s.unwrap_or_default()
         );
-        if let Some(out) = args.output {
-            match super::download(&client, &done, &out).await {
-                Ok(written) => eprintln!("wrote {}", super::describe_written(&written)),
-                Err(e) => return fail(e),
-            }
+        if let Some(out) = output {
+            let written = super::download(&client, &done, &out).await?;
+            eprintln!("wrote {}", super::describe_written(&written));
         }
-        ExitCode::SUCCESS
+        Ok(())
     })
 }

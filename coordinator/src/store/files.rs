@@ -121,10 +121,12 @@ impl Files {
             .map_err(|e| StoreError::io(format!("reading {}", path.display()), e))?;
         let pixels = pixels_from_bytes(&bytes, rect)
             .map_err(|e| StoreError::Corrupt(format!("{}: {e}", path.display())))?;
-        Image::from_pixels(rect.width, rect.height, pixels).map_err(StoreError::Corrupt)
+        Image::from_pixels(rect.width, rect.height, pixels)
+            .map_err(|e| StoreError::Corrupt(format!("{}: {e}", path.display())))
     }
 
-    /// Assembles an image from the given finished tiles; the others stay black.
+    /// Assembles an image from the given finished tiles (tracer-core's one assembly path);
+    /// the others stay black.
     pub fn assemble(
         &self,
         job_id: u64,
@@ -132,11 +134,10 @@ impl Files {
         height: u32,
         tiles: &[(u32, TileRect)],
     ) -> Result<Image, StoreError> {
-        let mut image = Image::new(width, height);
-        for &(index, rect) in tiles {
-            image.insert(rect, &self.tile(job_id, index, rect)?);
-        }
-        Ok(image)
+        let tiles = tiles
+            .iter()
+            .map(|&(index, rect)| Ok((rect, self.tile(job_id, index, rect)?)));
+        tracer_core::film::assemble(width, height, tiles)
     }
 
     /// Writes the final PNG and drops the tiles it was made of.
@@ -178,6 +179,7 @@ impl Files {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use protocol::pixels_to_bytes;
 
     #[test]
     fn blobs_are_stored_once_by_content() {
@@ -208,7 +210,7 @@ mod tests {
             tile.pixels.iter_mut().for_each(|p| *p = i as f32 / 4.0);
             expected.insert(*rect, &tile);
             files
-                .put_tile(7, i as u32, &protocol::pixels_to_bytes(&tile.pixels))
+                .put_tile(7, i as u32, &pixels_to_bytes(&tile.pixels))
                 .unwrap();
         }
         let all: Vec<(u32, TileRect)> = rects

@@ -20,6 +20,13 @@ pub enum StoreError {
     Corrupt(String),
 }
 
+impl From<tracer_core::film::ImageError> for StoreError {
+    /// A stored tile that does not make the image it belongs to.
+    fn from(e: tracer_core::film::ImageError) -> Self {
+        StoreError::Corrupt(e.to_string())
+    }
+}
+
 impl StoreError {
     pub fn io(context: impl Into<String>, source: std::io::Error) -> Self {
         StoreError::Io {

@@ -2,6 +2,8 @@
 //! size, frame by frame for a frame-range job; cancelling reaches rendering workers within
 //! about a second.
 
+use std::path::Path;
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use protocol::client::Client;
@@ -282,5 +284,54 @@ fn coordinator_render_matches_the_tracer_with_caustics() {
             png == tracer,
             "coordinator render --workers {workers} differs from tracer render with caustics"
         );
+    }
+}
+
+/// `coordinator render` and `tracer render` agree on flags, messages and exit codes: negative
+/// camera coordinates parse, a missing scene is a scene error (3) without a position, an
+/// output that is not a PNG is a usage error (2) before anything is read.
+#[test]
+fn both_command_lines_share_flags_and_exit_codes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |bin: &Path, args: &[&str]| {
+        let out = Command::new(bin)
+            .arg("render")
+            .args(args)
+            .current_dir(tmp.path())
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    for bin in [&bins().tracer, &bins().coordinator] {
+        let (code, err) = run(bin, &["nosuch.scene", "-o", "x.png"]);
+        assert_eq!(code, Some(3), "{err}");
+        assert!(
+            err.trim_end()
+                .ends_with("cannot read nosuch.scene: No such file or directory (os error 2)"),
+            "{err}"
+        );
+        let (code, err) = run(bin, &["nosuch.scene", "-o", "x.jpg"]);
+        assert_eq!(code, Some(2), "{err}");
+        assert!(err.contains("only PNG output is supported"), "{err}");
+        let (code, err) = run(
+            bin,
+            &[
+                "nosuch.scene",
+                "--camera-pos",
+                "-10,4,10",
+                "--look-at",
+                "0,-1,0",
+            ],
+        );
+        assert_eq!(
+            code,
+            Some(3),
+            "negative coordinates parse, then the scene is missing: {err}"
+        );
+        let (code, err) = run(bin, &["nosuch.scene", "--spp", "0"]);
+        assert_eq!(code, Some(2), "{err}");
     }
 }

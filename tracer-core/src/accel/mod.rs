@@ -1,6 +1,9 @@
 //! Bounding volume hierarchies: one generic binned-SAH BVH, used per mesh over triangles and
-//! at the top level over spheres, scene triangles and mesh instances.
+//! at the top level over spheres, scene triangles and mesh instances. `build` makes one,
+//! `bvh` holds the node layout and the traversals.
 
+mod build;
 mod bvh;
 
-pub use bvh::{Bvh, Node, PADDING};
+pub use build::PADDING;
+pub use bvh::{Bvh, Node};

@@ -1,12 +1,15 @@
-//! Rays, bounds, transforms and the two primitive intersectors (sphere and watertight triangle).
+//! Rays, bounds, transforms (static and keyed over time) and the two primitive intersectors
+//! (sphere and watertight triangle).
 
 mod bounds;
+mod motion;
 mod ray;
 mod sphere;
 mod transform;
 mod triangle;
 
 pub use bounds::Aabb;
+pub use motion::{Keyframe, Motion, TransformDesc};
 pub use ray::{Ray, TriangleRay};
 pub use sphere::intersect_unit_sphere_scaled;
 pub use transform::Transform;

@@ -3,23 +3,13 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use glam::DVec3;
-
 use super::desc::{MaterialDesc, SceneDescription};
 use super::obj::parse_obj;
 use super::{AssetSource, FsAssets, SceneError};
 use crate::geometry::Transform;
-use crate::settings::TextureFilter;
-use crate::texture::Texture;
-use crate::world::{Material, Mesh, Model, Mover, MoverShape, Sphere, World, WorldTriangle};
-
-#[derive(Clone, Debug)]
-pub struct Light {
-    pub position: DVec3,
-    pub color: DVec3,
-    pub attenuation: [f64; 3],
-    pub radius: f64,
-}
+use crate::shade::{CausticCache, CausticMap, Light, Material, Materials, Stage};
+use crate::texture::{Environment, Texture, TextureFilter};
+use crate::world::{Mesh, Model, Mover, MoverShape, Sphere, World, WorldTriangle};
 
 /// What building a scene cost and what it holds.
 #[derive(Clone, Debug, Default)]
@@ -31,44 +21,6 @@ pub struct SceneStats {
     pub bvh_build: Duration,
     /// Time spent reading and decoding assets.
     pub asset_load: Duration,
-}
-
-/// A latitude–longitude image seen by rays that leave the scene.
-#[derive(Clone, Debug)]
-pub struct Environment {
-    pub image: Texture,
-    pub intensity: f64,
-    /// cos and sin of the turn about +Y.
-    rotation: (f64, f64),
-}
-
-impl Environment {
-    pub fn new(image: Texture, intensity: f64, rotation: f64) -> Self {
-        Self {
-            image,
-            intensity,
-            rotation: (rotation.cos(), rotation.sin()),
-        }
-    }
-
-    /// The colour toward unit direction `d`: −Z (the default view) sees the image's centre,
-    /// +Y its top row; u grows turning right, toward +X. Filtered bilinearly, wrapping
-    /// around in u only.
-    pub fn lookup(&self, d: DVec3) -> DVec3 {
-        let (c, s) = self.rotation;
-        // Turning the map by +θ about Y turns the direction by −θ.
-        let x = c * d.x + s * d.z;
-        let z = -s * d.x + c * d.z;
-        let u = 0.5 + x.atan2(-z) / std::f64::consts::TAU;
-        let v = 0.5 + d.y.clamp(-1.0, 1.0).asin() / std::f64::consts::PI;
-        // Rows do not wrap over the poles: stay within the outer rows' centres.
-        let half_row = 0.5 / self.image.dimensions().1 as f64;
-        let v = v.clamp(half_row, 1.0 - half_row);
-        self.intensity
-            * self
-                .image
-                .sample(glam::DVec2::new(u, v), TextureFilter::Bilinear)
-    }
 }
 
 /// A scene ready to render: immutable and shared by every render thread.
@@ -84,7 +36,7 @@ pub struct Scene {
     pub(crate) has_gloss: bool,
     pub stats: SceneStats,
     /// The caustic photon map, built by the first renderer that needs it (`photon.rs`).
-    pub(crate) caustic_cache: crate::photon::CausticCache,
+    pub(crate) caustic_cache: CausticCache,
 }
 
 impl Scene {
@@ -93,12 +45,25 @@ impl Scene {
         self.description.frames
     }
 
-    /// What a ray leaving the scene along unit `dir` sees.
-    #[inline]
-    pub fn background(&self, dir: DVec3) -> DVec3 {
-        match &self.environment {
-            Some(env) => env.lookup(dir),
-            None => self.description.background,
+    /// What shading sees of this scene, textures sampled with `filter`.
+    pub(crate) fn stage<'a>(
+        &'a self,
+        filter: TextureFilter,
+        caustics: Option<&'a CausticMap>,
+    ) -> Stage<'a> {
+        Stage {
+            world: &self.world,
+            materials: Materials {
+                materials: &self.materials,
+                textures: &self.textures,
+                filter,
+            },
+            lights: &self.lights,
+            ambient: self.description.ambient,
+            background: self.description.background,
+            environment: self.environment.as_ref(),
+            outer_ior: self.description.refractive_index,
+            caustics,
         }
     }
 

@@ -9,7 +9,7 @@ mod obj;
 mod xml;
 
 pub use assets::{AssetSource, FsAssets, MemoryAssets};
-pub use build::{Environment, Light, Scene, SceneStats};
+pub use build::{Scene, SceneStats};
 pub use desc::{
     parse_c_double, CameraDesc, CausticsDesc, EnvironmentDesc, Keyframe, LightDesc, MaterialDesc,
     MeshDesc, ModelDesc, Motion, SceneDescription, SphereDesc, TransformDesc, TriangleDesc,

@@ -1,17 +1,20 @@
 //! `tracer`: renders and benchmarks course scenes on this machine.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
 mod report;
 
-use clap::{Args, Parser, Subcommand};
+use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use tracer_core::settings::{numbered_path, parse_vec3};
-use tracer_core::{
-    CameraOverride, CausticsSettings, FrameRange, RenderSettings, Renderer, Scene, TextureFilter,
+use tracer_core::cli_args::{
+    error_chain, exit, load_scene, LoadError, OutputArgs, OutputError, RenderArgs,
 };
+use tracer_core::metrics::MetricsError;
+use tracer_core::report::ReportError;
+use tracer_core::settings::numbered_path;
+use tracer_core::{Image, RenderError, RenderSettings, Renderer, Scene};
 
 #[derive(Parser)]
 #[command(
@@ -29,24 +32,13 @@ enum Command {
     /// Render a scene to a PNG.
     Render {
         scene: PathBuf,
-        /// Output PNG.
-        #[arg(short, long, default_value = "out.png")]
-        output: PathBuf,
         #[command(flatten)]
-        settings: SettingsArgs,
+        output: OutputArgs,
+        #[command(flatten)]
+        settings: RenderArgs,
         /// Worker threads (default: every core).
         #[arg(long)]
         threads: Option<usize>,
-        /// No progress bar.
-        #[arg(long, short)]
-        quiet: bool,
-        /// Render this frame of an animated scene (0-based), to the output as named.
-        #[arg(long, conflicts_with = "frames")]
-        frame: Option<u32>,
-        /// Render frames A through B inclusive (A..B), each to the output name with the
-        /// frame number inserted: out.png → out_0003.png.
-        #[arg(long)]
-        frames: Option<FrameRange>,
     },
     /// Measure error against run time over sample counts and thread counts, against a
     /// high-sample reference: report.csv, report.md and error_vs_time.png.
@@ -71,75 +63,49 @@ enum Command {
     },
 }
 
-/// Settings shared by every command that renders.
-#[derive(Args, Clone, Debug)]
-pub struct SettingsArgs {
-    #[arg(long, default_value_t = 800)]
-    width: u32,
-    #[arg(long, default_value_t = 600)]
-    height: u32,
-    /// Samples per pixel (stratified); 1 traces through pixel centres.
-    #[arg(long, default_value_t = 4)]
-    spp: u32,
-    /// Ray levels, the eye ray included (the course's 5 allows 4 bounces).
-    #[arg(long, default_value_t = 5)]
-    depth: u32,
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
-    /// Camera position x,y,z (with --look-at).
-    #[arg(long, value_parser = parse_vec3, requires = "look_at")]
-    camera_pos: Option<[f64; 3]>,
-    /// Point the camera looks at, x,y,z.
-    #[arg(long, value_parser = parse_vec3, requires = "camera_pos")]
-    look_at: Option<[f64; 3]>,
-    /// Camera up vector x,y,z.
-    #[arg(long, value_parser = parse_vec3, default_value = "0,1,0")]
-    up: [f64; 3],
-    /// Bilinear texture filtering instead of nearest texel.
-    #[arg(long)]
-    bilinear: bool,
-    /// Caustics by photon mapping, even if the scene has no <caustics> element.
-    #[arg(long, conflicts_with = "no_caustics")]
-    caustics: bool,
-    /// No caustics, even if the scene asks for them.
-    #[arg(long)]
-    no_caustics: bool,
-    /// Caustic photons to emit (turns caustics on; overrides the scene's count).
-    #[arg(long, conflicts_with = "no_caustics")]
-    photons: Option<u32>,
-    /// Caustic gather radius in scene units (turns caustics on; overrides the scene's).
-    #[arg(long, conflicts_with = "no_caustics")]
-    photon_radius: Option<f64>,
+/// Why a command failed, which decides the exit code.
+#[derive(Debug, thiserror::Error)]
+pub enum Failure {
+    #[error("{0}")]
+    Usage(String),
+    #[error(transparent)]
+    Output(#[from] OutputError),
+    #[error(transparent)]
+    Load(#[from] LoadError),
+    #[error(transparent)]
+    Settings(#[from] RenderError),
+    #[error("cannot read {path}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("cannot write {path}")]
+    Write {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path} is not an image")]
+    NotAnImage {
+        path: PathBuf,
+        source: tracer_core::film::ImageError,
+    },
+    #[error(transparent)]
+    Metrics(#[from] MetricsError),
+    #[error(transparent)]
+    Report(#[from] ReportError),
+    #[error("cannot start the render threads")]
+    Threads(#[from] rayon::ThreadPoolBuildError),
+    #[error("cannot print JSON")]
+    Json(#[from] serde_json::Error),
 }
 
-impl SettingsArgs {
-    fn to_settings(&self) -> RenderSettings {
-        RenderSettings {
-            width: self.width,
-            height: self.height,
-            spp: self.spp,
-            max_depth: self.depth,
-            seed: self.seed,
-            camera: self
-                .camera_pos
-                .zip(self.look_at)
-                .map(|(position, look_at)| CameraOverride {
-                    position,
-                    look_at,
-                    up: self.up,
-                }),
-            texture_filter: if self.bilinear {
-                TextureFilter::Bilinear
-            } else {
-                TextureFilter::Nearest
-            },
-            frame: 0,
-            caustics: CausticsSettings::from_flags(
-                self.caustics,
-                self.no_caustics,
-                self.photons,
-                self.photon_radius,
-            ),
+impl Failure {
+    fn exit_code(&self) -> u8 {
+        match self {
+            Failure::Usage(_) | Failure::Output(_) | Failure::Settings(_) => exit::USAGE,
+            Failure::Report(ReportError::Render(_)) => exit::USAGE,
+            Failure::Load(_) => exit::SCENE,
+            _ => exit::FAILURE,
         }
     }
 }
@@ -148,56 +114,53 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
-        Err(message) => {
-            eprintln!("error: {message}");
-            ExitCode::FAILURE
+        Err(failure) => {
+            eprintln!("error: {}", error_chain(&failure));
+            ExitCode::from(failure.exit_code())
         }
     }
 }
 
-fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool, String> {
+fn thread_pool(threads: Option<usize>) -> Result<rayon::ThreadPool, Failure> {
     let mut builder = rayon::ThreadPoolBuilder::new();
     if let Some(n) = threads {
         if n == 0 {
-            return Err("--threads must be at least 1".into());
+            return Err(Failure::Usage("--threads must be at least 1".into()));
         }
         builder = builder.num_threads(n);
     }
-    builder.build().map_err(|e| e.to_string())
+    Ok(builder.build()?)
 }
 
-fn run(cli: Cli) -> Result<(), String> {
+fn run(cli: Cli) -> Result<(), Failure> {
     match cli.command {
         Command::Render {
             scene,
             output,
             settings,
             threads,
-            quiet,
-            frame,
-            frames,
         } => {
-            let mut settings = settings.to_settings();
+            // Everything the flags can get wrong is refused before the scene is read.
+            let path = output.path_for(&scene)?;
+            let mut render = settings.to_settings();
+            render.validate().map_err(RenderError::from)?;
             let pool = thread_pool(threads)?;
             let started = Instant::now();
-            let scene = pool
-                .install(|| Scene::load(&scene))
-                .map_err(|e| e.to_string())?;
-            let Some(range) = frames else {
-                settings.frame = frame.unwrap_or(0);
-                return render_frame(&scene, &settings, &pool, &output, quiet, started);
+            let scene = pool.install(|| load_scene(&scene))?;
+            let Some(range) = settings.frames else {
+                return render_frame(&scene, &render, &pool, &path, output.quiet, started);
             };
             range
                 .validate(scene.frame_count())
-                .map_err(|e| format!("--frames: {e}"))?;
+                .map_err(|e| Failure::Usage(format!("--frames: {e}")))?;
             for f in range.frames() {
-                settings.frame = f;
+                render.frame = f;
                 render_frame(
                     &scene,
-                    &settings,
+                    &render,
                     &pool,
-                    &numbered_path(&output, f),
-                    quiet,
+                    &numbered_path(&path, f),
+                    output.quiet,
                     Instant::now(),
                 )?;
             }
@@ -205,10 +168,15 @@ fn run(cli: Cli) -> Result<(), String> {
         }
         Command::Report(args) => report::run(args),
         Command::Compare { image, reference } => {
-            let read = |p: &PathBuf| {
-                std::fs::read(p)
-                    .map_err(|e| format!("cannot read {}: {e}", p.display()))
-                    .and_then(|b| tracer_core::Image::from_png_bytes(&b))
+            let read = |path: &PathBuf| {
+                let bytes = std::fs::read(path).map_err(|source| Failure::Read {
+                    path: path.clone(),
+                    source,
+                })?;
+                Image::from_png_bytes(&bytes).map_err(|source| Failure::NotAnImage {
+                    path: path.clone(),
+                    source,
+                })
             };
             let (a, b) = (read(&image)?, read(&reference)?);
             let m = tracer_core::metrics::Comparison::of(&a, &b)?;
@@ -227,7 +195,7 @@ fn run(cli: Cli) -> Result<(), String> {
             json,
         } => {
             let pool = thread_pool(threads)?;
-            let scene = Scene::load(&scene).map_err(|e| e.to_string())?;
+            let scene = load_scene(&scene)?;
             let settings = RenderSettings {
                 width,
                 height,
@@ -236,10 +204,7 @@ fn run(cli: Cli) -> Result<(), String> {
             };
             let report = pool.install(|| tracer_core::bench::run(&scene, &settings, repeats))?;
             if json {
-                println!(
-                    "{}",
-                    serde_json::to_string(&report).map_err(|e| e.to_string())?
-                );
+                println!("{}", serde_json::to_string(&report)?);
             } else {
                 println!("threads            {}", pool.current_num_threads());
                 println!("triangles          {}", scene.stats.triangles);
@@ -265,10 +230,10 @@ fn render_frame(
     scene: &Scene,
     settings: &RenderSettings,
     pool: &rayon::ThreadPool,
-    output: &std::path::Path,
+    output: &Path,
     quiet: bool,
     started: Instant,
-) -> Result<(), String> {
+) -> Result<(), Failure> {
     // Inside the pool: building a caustic map uses the same threads as rendering.
     let prepared = Instant::now();
     let renderer = pool.install(|| Renderer::new(scene, settings))?;
@@ -292,9 +257,10 @@ fn render_frame(
     };
     let image = pool.install(|| renderer.render_image(&|done, _| bar.set_position(done)));
     bar.finish_and_clear();
-    image
-        .write_png(output)
-        .map_err(|e| format!("cannot write {}: {e}", output.display()))?;
+    image.write_png(output).map_err(|source| Failure::Write {
+        path: output.to_path_buf(),
+        source,
+    })?;
     let seconds = started.elapsed().as_secs_f64();
     let rays = renderer.rays_traced();
     eprintln!(

@@ -4,10 +4,13 @@
 use std::path::PathBuf;
 
 use clap::Args;
+use tracer_core::cli_args::load_scene;
 use tracer_core::report::{
     measure, print_row, reference_image, timed_render, write_report, ReportMeta,
 };
-use tracer_core::{RenderSettings, Scene};
+use tracer_core::RenderSettings;
+
+use crate::Failure;
 
 #[derive(Args, Debug)]
 pub struct ReportArgs {
@@ -35,20 +38,23 @@ pub struct ReportArgs {
     seed: u64,
 }
 
-pub fn run(args: ReportArgs) -> Result<(), String> {
+pub fn run(args: ReportArgs) -> Result<(), Failure> {
     if args.spp.is_empty() || args.spp.contains(&0) {
-        return Err("--spp needs sample counts of at least 1".into());
+        return Err(Failure::Usage(
+            "--spp needs sample counts of at least 1".into(),
+        ));
     }
-    let scene = Scene::load(&args.scene).map_err(|e| e.to_string())?;
+    if args.threads.contains(&0) {
+        return Err(Failure::Usage("--threads must be at least 1".into()));
+    }
+    let scene = load_scene(&args.scene)?;
     let settings = RenderSettings {
         width: args.width,
         height: args.height,
         seed: args.seed,
         ..RenderSettings::default()
     };
-    let all_cores = rayon::ThreadPoolBuilder::new()
-        .build()
-        .map_err(|e| e.to_string())?;
+    let all_cores = rayon::ThreadPoolBuilder::new().build()?;
     let (reference, reference_note) = reference_image(
         &scene,
         &settings,
@@ -64,10 +70,7 @@ pub fn run(args: ReportArgs) -> Result<(), String> {
     };
     let mut rows = Vec::new();
     for &n in &threads {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(n)
-            .build()
-            .map_err(|e| e.to_string())?;
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(n).build()?;
         let config = format!("{n} thread{}", if n == 1 { "" } else { "s" });
         for &spp in &args.spp {
             let s = RenderSettings {

@@ -1,0 +1,71 @@
+//! Point and spherical area lights: where a sample aims, how light falls off, and the
+//! shadowed diffuse term. The caustic photons leave the lights through the same sampling.
+
+use glam::DVec3;
+
+use super::material::Surface;
+use super::optics::spawn_ray;
+use crate::sampler::{uniform_sphere, Rng};
+use crate::world::World;
+
+#[derive(Clone, Debug)]
+pub struct Light {
+    pub position: DVec3,
+    pub color: DVec3,
+    pub attenuation: [f64; 3],
+    pub radius: f64,
+}
+
+impl Light {
+    /// A point of the light: its centre, or for a light with a radius one uniform point of
+    /// its sphere's surface (soft shadows; two numbers drawn).
+    #[inline]
+    pub fn sample_point(&self, rng: &mut Rng) -> DVec3 {
+        if self.radius > 0.0 {
+            self.position + self.radius * uniform_sphere(rng.next_f64(), rng.next_f64())
+        } else {
+            self.position
+        }
+    }
+
+    /// The attenuation's denominator a_c + a_l·d + a_q·d² at distance `d` (conventions §0.5),
+    /// clamped so that all-zero terms at zero distance stay finite.
+    #[inline]
+    pub fn falloff(&self, d: f64) -> f64 {
+        let [a_c, a_l, a_q] = self.attenuation;
+        (a_c + a_l * d + a_q * d * d).max(1e-12)
+    }
+
+    /// This light's shadowed, attenuated diffuse term c·att·max(N·L, 0) at surface `s` with
+    /// shading normal `n` (the caller multiplies by the material's diffuse colour), and
+    /// whether a shadow ray was traced for it (at `time`).
+    pub fn direct(
+        &self,
+        world: &World,
+        s: &Surface,
+        n: DVec3,
+        error_scale: f64,
+        time: f64,
+        rng: &mut Rng,
+    ) -> (DVec3, bool) {
+        let p = s.position;
+        let target = self.sample_point(rng);
+        let to_light = target - p;
+        let distance = to_light.length();
+        if distance == 0.0 || !distance.is_finite() {
+            return (DVec3::ZERO, false);
+        }
+        let l = to_light / distance;
+        let cos = n.dot(l);
+        if cos.is_nan() || cos <= 0.0 {
+            return (DVec3::ZERO, false);
+        }
+        let shadow = spawn_ray(p, s.geometric_normal, l, error_scale, time);
+        let shadow_length = (target - shadow.origin).dot(l);
+        if world.occluded(&shadow, shadow_length) {
+            return (DVec3::ZERO, true);
+        }
+        let attenuation = 1.0 / self.falloff(distance);
+        (self.color * (attenuation * cos), true)
+    }
+}

@@ -1,0 +1,229 @@
+//! The course's shading model (conventions §8.3 as corrected by §0): Whitted recursion with
+//! ambient + shadowed diffuse, mirror reflection tinted by specular × texture, and dielectrics
+//! blending reflection and Snell refraction by Schlick's approximation.
+//!
+//! - [`optics`]: reflection, refraction, Schlick, the one dielectric crossing decision;
+//! - [`medium`]: the refraction-index stack;
+//! - [`material`]: materials and texture look-up at a hit;
+//! - [`light`]: lights, area-light sampling and the shadowed diffuse term;
+//! - [`caustics`]: the photon map gathered at diffuse hits (built by `photon.rs`).
+//!
+//! Shading sees the scene through a [`Stage`], so that this module does not depend on how a
+//! scene is loaded.
+
+pub mod caustics;
+pub mod light;
+pub mod material;
+pub mod medium;
+pub mod optics;
+
+use glam::DVec3;
+
+pub use caustics::{CausticCache, CausticMap, CausticsParams};
+pub use light::Light;
+pub use material::{Material, Materials, Surface};
+pub use medium::MediumStack;
+pub use optics::{glossy, reflect, refract, schlick, spawn_ray, toward_viewer, Crossing};
+
+use crate::geometry::Ray;
+use crate::sampler::Rng;
+use crate::texture::Environment;
+use crate::world::{Hit, World};
+
+/// Radiance rays one pixel sample may trace at most. Dielectrics branch in two at every level,
+/// so a deep limit could otherwise ask for 2^depth rays; the course's depth 5 needs at most 31.
+pub const RAY_BUDGET_PER_SAMPLE: u32 = 4096;
+
+/// What shading sees of a scene.
+#[derive(Clone, Copy, Debug)]
+pub struct Stage<'a> {
+    pub world: &'a World,
+    pub materials: Materials<'a>,
+    pub lights: &'a [Light],
+    pub ambient: DVec3,
+    /// Seen by rays that leave the scene, unless there is an environment map.
+    pub background: DVec3,
+    pub environment: Option<&'a Environment>,
+    /// Refractive index of the medium the camera sits in.
+    pub outer_ior: f64,
+    /// Caustic photons gathered at diffuse hits, when the render has them.
+    pub caustics: Option<&'a CausticMap>,
+}
+
+impl Stage<'_> {
+    /// What a ray leaving the scene along unit `dir` sees.
+    #[inline]
+    pub fn background(&self, dir: DVec3) -> DVec3 {
+        match self.environment {
+            Some(env) => env.lookup(dir),
+            None => self.background,
+        }
+    }
+
+    /// The surface at `hit` along `ray`: its geometry and its material's values.
+    #[inline(always)]
+    pub fn surface(&self, ray: &Ray, hit: &Hit) -> Surface {
+        self.materials.surface(&self.world.patch(ray, hit))
+    }
+}
+
+/// Rays one pixel sample traced.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RayCounts {
+    pub radiance: u32,
+    pub shadow: u32,
+}
+
+/// Traces pixel samples through one stage; one per thread, reused sample after sample.
+pub struct Tracer<'a> {
+    stage: Stage<'a>,
+    max_depth: u32,
+    /// Rays traced for the current sample (the radiance count is bounded by the budget).
+    counts: RayCounts,
+    /// The sample's glossy-lobe stream (see [`crate::sampler::Stream::Gloss`]).
+    gloss_rng: Rng,
+}
+
+impl<'a> Tracer<'a> {
+    pub fn new(stage: Stage<'a>, max_depth: u32) -> Self {
+        Self {
+            stage,
+            max_depth,
+            counts: RayCounts::default(),
+            gloss_rng: Rng::for_sample(0, 0, 0, 0),
+        }
+    }
+
+    /// The colour one pixel sample sees along the eye ray `ray` (unit direction), hits
+    /// accepted for t in [near, far], with the rays it traced. `rng` is the sample's main
+    /// stream; `gloss` its glossy-lobe stream, needed only where a material is glossy.
+    pub fn sample(
+        &mut self,
+        ray: &Ray,
+        near: f64,
+        far: f64,
+        rng: &mut Rng,
+        gloss: Option<Rng>,
+    ) -> (DVec3, RayCounts) {
+        if let Some(gloss) = gloss {
+            self.gloss_rng = gloss;
+        }
+        self.counts = RayCounts::default();
+        let outer = MediumStack::new(self.stage.outer_ior);
+        let color = self.radiance(ray, near, far, 0, outer, rng);
+        (color, self.counts)
+    }
+
+    /// Colour seen along `ray` (unit direction) at recursion `level` (the eye ray is level 0;
+    /// a ray at level max_depth contributes black).
+    fn radiance(
+        &mut self,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+        level: u32,
+        media: MediumStack,
+        rng: &mut Rng,
+    ) -> DVec3 {
+        let absorption = media.absorption();
+        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng);
+        if absorption == DVec3::ZERO {
+            return color;
+        }
+        // Beer's law over the distance travelled inside the medium (an escaping ray
+        // travels forever: exp(-σ·∞) = 0 wherever σ > 0).
+        let transmittance = (-absorption * distance).exp();
+        color * DVec3::select(absorption.cmpeq(DVec3::ZERO), DVec3::ONE, transmittance)
+    }
+
+    /// The colour along `ray`, and the distance to what it hit (infinite on a miss).
+    fn trace(
+        &mut self,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+        level: u32,
+        media: MediumStack,
+        rng: &mut Rng,
+    ) -> (DVec3, f64) {
+        if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
+            return (DVec3::ZERO, 0.0);
+        }
+        self.counts.radiance += 1;
+        let Some(hit) = self.stage.world.intersect(ray, t_min, t_max) else {
+            return (self.stage.background(ray.dir), f64::INFINITY);
+        };
+        (self.shade(ray, &hit, level, media, rng), hit.t)
+    }
+
+    fn shade(
+        &mut self,
+        ray: &Ray,
+        hit: &Hit,
+        level: u32,
+        media: MediumStack,
+        rng: &mut Rng,
+    ) -> DVec3 {
+        let stage = self.stage;
+        let s = stage.surface(ray, hit);
+        let error_scale = s.position.abs().max_element() + hit.t;
+        let d = ray.dir;
+
+        if s.ior == 0.0 {
+            // Opaque: shade the side the ray sees (conventions §0.3).
+            let n = toward_viewer(s.normal, d);
+            let mut direct = stage.ambient * s.ambient;
+            for light in stage.lights {
+                let (light, traced) = light.direct(stage.world, &s, n, error_scale, ray.time, rng);
+                self.counts.shadow += traced as u32;
+                direct += light * s.diffuse;
+            }
+            if let Some(map) = stage.caustics {
+                direct += map.irradiance(s.position, n) * s.diffuse;
+            }
+            let mut color = s.texture * direct;
+            let tint = s.texture * s.specular;
+            if tint != DVec3::ZERO {
+                let dir = glossy(reflect(d, n), n, s.glossiness, &mut self.gloss_rng);
+                let reflected =
+                    spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
+                color +=
+                    tint * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng);
+            }
+            return color;
+        }
+
+        let crossing = Crossing::new(media, s.normal, d, s.ior, s.absorption);
+        let reflectance = crossing.reflectance;
+        let tint = s.texture * s.specular;
+        let mut color = DVec3::ZERO;
+        if reflectance > 0.0 && tint != DVec3::ZERO {
+            let dir = glossy(
+                crossing.reflected(d),
+                crossing.facing,
+                s.glossiness,
+                &mut self.gloss_rng,
+            );
+            let reflected = spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
+            color += reflectance
+                * tint
+                * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng);
+        }
+        if reflectance < 1.0 {
+            if let Some(dir) = crossing.refracted(d) {
+                let refracted =
+                    spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
+                color += (1.0 - reflectance)
+                    * self.radiance(
+                        &refracted,
+                        0.0,
+                        f64::INFINITY,
+                        level + 1,
+                        crossing.beyond,
+                        rng,
+                    );
+            }
+        }
+        color
+    }
+}
