@@ -413,3 +413,32 @@ fn the_limit_names_are_the_fields() {
     let plain = SceneDescription::parse("<scene>", "t.scene").unwrap_err();
     assert_eq!(plain.limit(), None);
 }
+
+#[test]
+fn named_motions_copied_into_many_elements_count_against_the_element_bound() {
+    let keys: String = (1..=1_000)
+        .map(|t| format!("<keyframe time=\"{t}\"/>"))
+        .collect();
+    let users = |n: usize| -> String {
+        (0..n)
+            .map(|_| "    <sphere material=\"m\" motion=\"w\"><position x=\"0\" y=\"0\" z=\"0\"/><radius v=\"1\"/></sphere>\n")
+            .collect()
+    };
+    let budget = limits(u64::MAX, 100);
+    // 100 primitives allow 100·64 + 65,536 = 71,936 elements: 72 users copy 72,000 keys.
+    let text = scene(&format!(
+        "    <motion name=\"w\">{keys}</motion>\n{}",
+        users(100)
+    ));
+    let err = SceneDescription::parse_with_limits(&text, "t.scene", &budget).unwrap_err();
+    assert_eq!((err.line, err.column), (13 + 71, 5), "{err}");
+    assert_eq!(err.limit(), Some("max_primitives"), "{err}");
+    assert!(err.message.contains("72000 is over 71936"), "{err}");
+    assert!(err.message.contains("max_primitives = 100"), "{err}");
+    let text = scene(&format!(
+        "    <motion name=\"w\">{keys}</motion>\n{}",
+        users(71)
+    ));
+    let desc = SceneDescription::parse_with_limits(&text, "t.scene", &budget).unwrap();
+    assert_eq!(desc.spheres[70].motion.keys.len(), 1_000);
+}

@@ -50,6 +50,33 @@ impl SceneError {
         }
     }
 
+    /// A refusal by the element bound that `max_primitives` sets (`limits.max_elements()`):
+    /// `count` of `what` passed it.
+    pub(crate) fn over_element_bound(
+        file: impl Into<String>,
+        line: u32,
+        column: u32,
+        limits: &super::LoadLimits,
+        count: u64,
+        what: &str,
+    ) -> Self {
+        Self {
+            limit: Some("max_primitives"),
+            ..Self::new(
+                file,
+                line,
+                column,
+                format!(
+                    "{what}: {count} is over {}, the most the load limit max_primitives = {} allows ({} per primitive + {})",
+                    limits.max_elements(),
+                    limits.max_primitives,
+                    super::LoadLimits::ELEMENTS_PER_PRIMITIVE,
+                    super::LoadLimits::ELEMENT_ALLOWANCE,
+                ),
+            )
+        }
+    }
+
     /// The name of the [`LoadLimits`](super::LoadLimits) field a budget refusal passed
     /// (`"max_texture_pixels"` or `"max_primitives"`); None for every other error.
     pub fn limit(&self) -> Option<&'static str> {

@@ -6,6 +6,8 @@
 //! most [`LoadLimits::max_elements`] elements, and spheres and triangles are counted against
 //! `max_primitives` as they open.
 
+use std::cell::Cell;
+
 use quick_xml::events::{BytesStart, Event};
 use quick_xml::Reader;
 
@@ -50,13 +52,21 @@ impl Element {
 struct LineIndex<'a> {
     text: &'a str,
     line_starts: Vec<usize>,
+    /// The last offset mapped, its line index and 0-based column: the parser asks for offsets
+    /// in increasing order, so each column is counted on from the previous one, not from the
+    /// line's start (which made a file on one line cost quadratic time).
+    cursor: Cell<(usize, usize, u32)>,
 }
 
 impl<'a> LineIndex<'a> {
     fn new(text: &'a str) -> Self {
         let mut line_starts = vec![0];
         line_starts.extend(text.match_indices('\n').map(|(i, _)| i + 1));
-        Self { text, line_starts }
+        Self {
+            text,
+            line_starts,
+            cursor: Cell::new((0, 0, 0)),
+        }
     }
 
     /// Total over all offsets: one past the end clamps to the end, one inside a multi-byte
@@ -67,18 +77,23 @@ impl<'a> LineIndex<'a> {
             offset -= 1;
         }
         let line = self.line_starts.partition_point(|&s| s <= offset) - 1;
-        let start = self.line_starts[line];
-        let mut column = 0u32;
-        for ch in self.text[start..offset].chars() {
+        let (cursor_offset, cursor_line, cursor_column) = self.cursor.get();
+        let (from, mut column) = if cursor_line == line && cursor_offset <= offset {
+            (cursor_offset, cursor_column)
+        } else {
+            (self.line_starts[line], 0)
+        };
+        for ch in self.text[from..offset].chars() {
             column = if ch == '\t' {
-                (column / 4 + 1) * 4
+                (column / 4).saturating_add(1).saturating_mul(4)
             } else {
-                column + 1
+                column.saturating_add(1)
             };
         }
+        self.cursor.set((offset, line, column));
         Pos {
             line: line as u32 + 1,
-            column: column + 1,
+            column: column.saturating_add(1),
         }
     }
 }
@@ -175,20 +190,14 @@ impl Counts {
             ));
         }
         self.elements += 1;
-        let max_elements = limits.max_elements();
-        if self.elements > max_elements {
-            return Err(SceneError::over_limit(
+        if self.elements > limits.max_elements() {
+            return Err(SceneError::over_element_bound(
                 file,
                 at.line,
                 at.column,
-                "max_primitives",
+                limits,
                 self.elements,
-                max_elements,
-                &format!(
-                    "XML elements ({} per allowed primitive + {})",
-                    LoadLimits::ELEMENTS_PER_PRIMITIVE,
-                    LoadLimits::ELEMENT_ALLOWANCE
-                ),
+                "XML elements",
             ));
         }
         let is_primitive = matches!(element.name.as_str(), "sphere" | "triangle");
@@ -290,6 +299,22 @@ mod tests {
             index.pos(text.find('x').unwrap()),
             Pos { line: 2, column: 6 }
         );
+    }
+
+    #[test]
+    fn counting_on_from_the_last_position_agrees_with_counting_afresh() {
+        let text = "a\tb\té€\t\tc\n\t d😀\te\n\nxyz";
+        let ascending = LineIndex::new(text);
+        let descending = LineIndex::new(text);
+        let offsets: Vec<usize> = (0..=text.len() + 1).collect();
+        for (&up, &down) in offsets.iter().zip(offsets.iter().rev()) {
+            assert_eq!(ascending.pos(up), LineIndex::new(text).pos(up), "{up}");
+            assert_eq!(
+                descending.pos(down),
+                LineIndex::new(text).pos(down),
+                "{down}"
+            );
+        }
     }
 
     #[test]

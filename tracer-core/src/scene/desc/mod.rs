@@ -61,7 +61,7 @@ impl SceneDescription {
         limits: &LoadLimits,
     ) -> Result<Self, SceneError> {
         let root = parse_document(text, file, limits)?;
-        Parser { file }.scene(&root)
+        Parser::new(file, limits).scene(&root)
     }
 
     /// Spheres plus scene triangles: the primitives counted before any mesh is read.

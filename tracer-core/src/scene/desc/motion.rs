@@ -120,6 +120,7 @@ impl Parser<'_> {
         } else {
             el
         };
+        self.copy_keyframes(el, source.children_named("keyframe").count())?;
         let mut keys: Vec<Keyframe> = Vec::new();
         let mut previous = *base;
         let mut previous_time = 0.0;

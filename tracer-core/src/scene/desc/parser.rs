@@ -1,15 +1,20 @@
 //! The element-level rules every part of the scene file shares: singletons, required
 //! children and attributes, numbers read as C's `sscanf` does, names and references.
 
+use std::cell::Cell;
 use std::collections::HashMap;
 
 use glam::{DQuat, DVec3};
 
 use crate::scene::xml::Element;
-use crate::scene::SceneError;
+use crate::scene::{LoadLimits, SceneError};
 
 pub(super) struct Parser<'f> {
     pub(super) file: &'f str,
+    pub(super) limits: &'f LoadLimits,
+    /// Keyframes copied into the description so far. A named `<motion>` is copied into every
+    /// element that uses it, so this, unlike the element count, can grow as elements × keys.
+    pub(super) keyframes: Cell<u64>,
 }
 
 /// Defined names (materials, meshes, vertices, motions) and their indices, looked up in
@@ -23,7 +28,32 @@ pub(super) struct Motions<'e> {
     pub(super) definitions: Vec<&'e Element>,
 }
 
-impl Parser<'_> {
+impl<'f> Parser<'f> {
+    pub(super) fn new(file: &'f str, limits: &'f LoadLimits) -> Self {
+        Self {
+            file,
+            limits,
+            keyframes: Cell::new(0),
+        }
+    }
+
+    /// Counts `count` more keyframes copied for `el`, refused past the element budget that
+    /// `max_primitives` sets, so that named motions cannot multiply the scene's memory.
+    pub(super) fn copy_keyframes(&self, el: &Element, count: usize) -> Result<(), SceneError> {
+        let total = self.keyframes.get().saturating_add(count as u64);
+        self.keyframes.set(total);
+        if total > self.limits.max_elements() {
+            return Err(SceneError::over_element_bound(
+                self.file,
+                el.pos.line,
+                el.pos.column,
+                self.limits,
+                total,
+                "keyframes (a named motion's counted for each element that uses it)",
+            ));
+        }
+        Ok(())
+    }
     pub(super) fn error(&self, at: &Element, message: impl Into<String>) -> SceneError {
         SceneError::new(self.file, at.pos.line, at.pos.column, message)
     }
