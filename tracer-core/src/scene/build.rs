@@ -194,7 +194,8 @@ impl Scene {
             });
         }
 
-        // Meshes some model uses; parsed in parallel, since the big ones dominate load time.
+        // Meshes some model uses, in order, each parsed against what the primitive budget has
+        // left after the spheres, the scene triangles and the meshes before it.
         let used_meshes: Vec<usize> = d
             .used_meshes()
             .iter()
