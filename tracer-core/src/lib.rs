@@ -41,7 +41,7 @@ pub mod world;
 
 pub use film::Image;
 pub use render::{RenderError, Renderer};
-pub use scene::{AssetSource, FsAssets, MemoryAssets, Scene, SceneError};
+pub use scene::{AssetSource, FsAssets, LoadLimits, MemoryAssets, Scene, SceneError};
 pub use settings::{
     CameraOverride, CausticsSettings, FrameRange, RenderSettings, SettingsError, TextureFilter,
     TileRect,

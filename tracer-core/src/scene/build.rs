@@ -1,11 +1,13 @@
 //! From a description to a renderable scene, reading only the assets that geometry uses.
 
+use std::collections::HashMap;
+use std::io::Cursor;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use super::desc::{MaterialDesc, SceneDescription};
-use super::obj::parse_obj;
-use super::{AssetSource, FsAssets, SceneError};
+use super::desc::SceneDescription;
+use super::obj::parse_obj_with_limit;
+use super::{AssetSource, FsAssets, LoadLimits, SceneError};
 use crate::geometry::Transform;
 use crate::shade::{CausticCache, CausticMap, Light, Material, Materials, Stage};
 use crate::texture::{Environment, Texture, TextureFilter};
@@ -82,35 +84,68 @@ impl Scene {
         Scene::build(&description, &file, &FsAssets::for_scene(path))
     }
 
-    /// Builds from a parsed description; `file` names the scene file in asset errors.
+    /// Builds from a parsed description; `file` names the scene file in asset errors. No load
+    /// limits: the same as [`build_with_limits`](Self::build_with_limits) with
+    /// [`LoadLimits::UNLIMITED`].
     pub fn build(
         description: &SceneDescription,
         file: &str,
         assets: &dyn AssetSource,
+    ) -> Result<Scene, SceneError> {
+        Self::build_with_limits(description, file, assets, &LoadLimits::UNLIMITED)
+    }
+
+    /// Builds from a parsed description under `limits`: each texture's size is read from its
+    /// PNG header and counted against `max_texture_pixels` before it is decoded, and each used
+    /// mesh's triangles are counted against what `max_primitives` leaves after the spheres,
+    /// the scene's triangles and earlier meshes, while the OBJ is parsed, before any BVH is
+    /// built. `file` names the scene file in errors.
+    pub fn build_with_limits(
+        description: &SceneDescription,
+        file: &str,
+        assets: &dyn AssetSource,
+        limits: &LoadLimits,
     ) -> Result<Scene, SceneError> {
         let d = description;
         let load_started = Instant::now();
         let scene_error = |pos: super::xml::Pos, message: String| {
             SceneError::new(file, pos.line, pos.column, message)
         };
+        let scene_primitives = d.scene_primitives();
+        if scene_primitives > limits.max_primitives {
+            return Err(SceneError::over_limit(
+                file,
+                0,
+                0,
+                "max_primitives",
+                scene_primitives,
+                limits.max_primitives,
+                "spheres and triangles",
+            ));
+        }
+        let used_materials = d.used_materials();
 
         // Textures of used materials only, each file decoded once.
+        let mut pixels = PixelBudget {
+            used: 0,
+            max: limits.max_texture_pixels,
+        };
         let mut textures: Vec<Texture> = Vec::new();
-        let mut texture_paths: Vec<&str> = Vec::new();
+        let mut texture_slots: HashMap<&str, u32> = HashMap::new();
         let mut materials = Vec::with_capacity(d.materials.len());
-        for (index, m) in d.materials.iter().enumerate() {
+        for (m, used) in d.materials.iter().zip(&used_materials) {
             let texture = match &m.texture {
-                Some(path) if d.material_used(index) => {
-                    if let Some(existing) = texture_paths.iter().position(|p| p == path) {
-                        Some(existing as u32)
-                    } else {
-                        textures.push(
-                            load_texture(m, path, assets).map_err(|e| scene_error(m.pos, e))?,
-                        );
-                        texture_paths.push(path);
+                Some(path) if *used => match texture_slots.get(path.as_str()) {
+                    Some(&slot) => Some(slot),
+                    None => {
+                        let owner = format!("material \"{}\": ", m.name);
+                        let texture = load_png(path, assets, &owner, "texture ", &mut pixels)
+                            .map_err(|e| e.at(file, m.pos))?;
+                        textures.push(texture);
+                        texture_slots.insert(path, textures.len() as u32 - 1);
                         Some(textures.len() as u32 - 1)
                     }
-                }
+                },
                 _ => None,
             };
             materials.push(Material {
@@ -124,8 +159,15 @@ impl Scene {
             });
         }
 
-        // Meshes some model uses; parsed in parallel, since the big ones dominate load time.
-        let used_meshes: Vec<usize> = (0..d.meshes.len()).filter(|&i| d.mesh_used(i)).collect();
+        // Meshes some model uses, in order, each parsed against what the primitive budget has
+        // left after the spheres, the scene triangles and the meshes before it.
+        let used_meshes: Vec<usize> = d
+            .used_meshes()
+            .iter()
+            .enumerate()
+            .filter_map(|(i, used)| used.then_some(i))
+            .collect();
+        let mut primitives_left = limits.max_primitives - scene_primitives;
         let mesh_data = used_meshes
             .iter()
             .map(|&i| {
@@ -147,13 +189,20 @@ impl Scene {
                     )
                 })?;
                 let text = String::from_utf8_lossy(&bytes);
-                parse_obj(&text, &assets.display_name(path))
+                let mesh = parse_obj_with_limit(
+                    &text,
+                    &assets.display_name(path),
+                    primitives_left,
+                    limits.max_primitives,
+                )?;
+                primitives_left -= mesh.triangles.len() as u64;
+                Ok(mesh)
             })
             .collect::<Result<Vec<_>, _>>()?;
         let environment = match &d.environment {
             Some(e) => {
-                let image = load_png(&e.file, assets)
-                    .map_err(|m| scene_error(e.pos, format!("environment map: {m}")))?;
+                let image = load_png(&e.file, assets, "environment map: ", "", &mut pixels)
+                    .map_err(|failure| failure.at(file, e.pos))?;
                 Some(Environment::new(image, e.intensity, e.rotation))
             }
             None => None,
@@ -268,8 +317,8 @@ impl Scene {
             .collect();
         let has_gloss = materials
             .iter()
-            .enumerate()
-            .any(|(i, m)| m.glossiness > 0.0 && d.material_used(i));
+            .zip(&used_materials)
+            .any(|(m, used)| m.glossiness > 0.0 && *used);
         Ok(Scene {
             description: d.clone(),
             lights,
@@ -294,36 +343,69 @@ fn transform(t: &super::desc::TransformDesc) -> Transform {
     Transform::new(t.position, t.orientation, t.scale)
 }
 
-fn load_texture(m: &MaterialDesc, path: &str, assets: &dyn AssetSource) -> Result<Texture, String> {
-    // The course's loader accepts only names ending in the lower-case suffix.
-    if !path.ends_with(".png") {
-        return Err(format!(
-            "material \"{}\": texture '{path}' must be a .png file",
-            m.name
-        ));
-    }
-    let bytes = assets.read(path).map_err(|e| {
-        format!(
-            "material \"{}\": cannot read texture '{}': {e}",
-            m.name,
-            assets.display_name(path)
-        )
-    })?;
-    Texture::decode_png(&bytes).map_err(|e| {
-        format!(
-            "material \"{}\": texture '{}': {e}",
-            m.name,
-            assets.display_name(path)
-        )
-    })
+/// Texture pixels counted so far against `max_texture_pixels`.
+struct PixelBudget {
+    used: u64,
+    max: u64,
 }
 
-fn load_png(path: &str, assets: &dyn AssetSource) -> Result<Texture, String> {
-    if !path.ends_with(".png") {
-        return Err(format!("'{path}' must be a .png file"));
+/// Why a PNG asset could not be loaded, before it is placed at the element that asked for it.
+enum PngFailure {
+    Invalid(String),
+    OverBudget { count: u64, max: u64, what: String },
+}
+
+impl PngFailure {
+    fn at(self, file: &str, pos: super::xml::Pos) -> SceneError {
+        match self {
+            PngFailure::Invalid(message) => SceneError::new(file, pos.line, pos.column, message),
+            PngFailure::OverBudget { count, max, what } => SceneError::over_limit(
+                file,
+                pos.line,
+                pos.column,
+                "max_texture_pixels",
+                count,
+                max,
+                &what,
+            ),
+        }
     }
+}
+
+/// Reads the PNG at `path`, counts its header's width × height against `budget`, and only then
+/// decodes it. `owner` and `noun` start the messages ("material \"m\": ", "texture ").
+fn load_png(
+    path: &str,
+    assets: &dyn AssetSource,
+    owner: &str,
+    noun: &str,
+    budget: &mut PixelBudget,
+) -> Result<Texture, PngFailure> {
+    // The course's loader accepts only names ending in the lower-case suffix.
+    if !path.ends_with(".png") {
+        return Err(PngFailure::Invalid(format!(
+            "{owner}{noun}'{path}' must be a .png file"
+        )));
+    }
+    let name = assets.display_name(path);
     let bytes = assets
         .read(path)
-        .map_err(|e| format!("cannot read '{}': {e}", assets.display_name(path)))?;
-    Texture::decode_png(&bytes).map_err(|e| format!("'{}': {e}", assets.display_name(path)))
+        .map_err(|e| PngFailure::Invalid(format!("{owner}cannot read {noun}'{name}': {e}")))?;
+    let invalid = |e: String| PngFailure::Invalid(format!("{owner}{noun}'{name}': {e}"));
+    let (width, height) =
+        image::ImageReader::with_format(Cursor::new(&bytes), image::ImageFormat::Png)
+            .into_dimensions()
+            .map_err(|e| invalid(format!("cannot decode PNG: {e}")))?;
+    let count = budget
+        .used
+        .saturating_add(u64::from(width) * u64::from(height));
+    if count > budget.max {
+        return Err(PngFailure::OverBudget {
+            count,
+            max: budget.max,
+            what: format!("texture pixels with {owner}{noun}'{name}' ({width}×{height})"),
+        });
+    }
+    budget.used = count;
+    Texture::decode_png(&bytes).map_err(|e| invalid(e.to_string()))
 }

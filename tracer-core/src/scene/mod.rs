@@ -1,10 +1,11 @@
 //! Scene loading: XML → [`SceneDescription`] (no asset I/O) → [`Scene`] (assets read, BVHs
-//! built).
+//! built), optionally under [`LoadLimits`].
 
 mod assets;
 mod build;
 mod desc;
 mod error;
+mod limits;
 mod obj;
 mod xml;
 
@@ -16,5 +17,6 @@ pub use desc::{
     VertexDesc,
 };
 pub use error::SceneError;
-pub use obj::{parse_obj, smooth_normals, MeshData};
-pub use xml::Pos;
+pub use limits::LoadLimits;
+pub use obj::{parse_obj, parse_obj_with_limit, smooth_normals, MeshData};
+pub use xml::{Pos, MAX_DEPTH};

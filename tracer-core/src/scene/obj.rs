@@ -42,6 +42,19 @@ impl FaceFormat {
 
 /// Parses OBJ text; `file` names it in errors.
 pub fn parse_obj(text: &str, file: &str) -> Result<MeshData, SceneError> {
+    parse_obj_with_limit(text, file, u64::MAX, u64::MAX)
+}
+
+/// Parses OBJ text, stopping at the face that takes the mesh past `max_triangles`: that face's
+/// `file:line:column` is reported as passing `max_primitives` (whose whole value, `limit`, the
+/// message quotes; `max_triangles` is what the scene had left of it).
+pub fn parse_obj_with_limit(
+    text: &str,
+    file: &str,
+    max_triangles: u64,
+    limit: u64,
+) -> Result<MeshData, SceneError> {
+    let used_elsewhere = limit.saturating_sub(max_triangles);
     let mut raw_positions: Vec<DVec3> = Vec::new();
     let mut raw_normals: Vec<DVec3> = Vec::new();
     let mut raw_tex: Vec<DVec2> = Vec::new();
@@ -110,6 +123,19 @@ pub fn parse_obj(text: &str, file: &str) -> Result<MeshData, SceneError> {
                         });
                     }
                     face.push(id);
+                }
+                let triangles = mesh.triangles.len() as u64 + face.len() as u64 - 2;
+                if triangles > max_triangles {
+                    let column = kind.as_ptr() as usize - line.as_ptr() as usize + 1;
+                    return Err(SceneError::over_limit(
+                        file,
+                        line_no,
+                        column as u32,
+                        "max_primitives",
+                        used_elsewhere.saturating_add(triangles),
+                        limit,
+                        "primitives with this mesh's triangles so far",
+                    ));
                 }
                 mesh.triangles.push([face[0], face[1], face[2]]);
                 if face.len() == 4 {
@@ -296,5 +322,27 @@ mod tests {
         assert!(e.message.contains("face format"), "{e}");
         let e = parse_obj("v nan 0 0\n", "m.obj").unwrap_err();
         assert!(e.message.contains("finite"), "{e}");
+    }
+
+    #[test]
+    fn the_triangle_budget_stops_at_the_face_that_passes_it() {
+        let text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nf 1 2 3 4\n";
+        assert_eq!(
+            parse_obj_with_limit(text, "m.obj", 3, 3)
+                .unwrap()
+                .triangles
+                .len(),
+            3
+        );
+        let e = parse_obj_with_limit(text, "m.obj", 2, 10).unwrap_err();
+        assert_eq!(
+            (e.line, e.column, e.limit()),
+            (6, 1, Some("max_primitives")),
+            "{e}"
+        );
+        assert!(
+            e.message.contains("11 is over") && e.message.contains("= 10"),
+            "{e}"
+        );
     }
 }
