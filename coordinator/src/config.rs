@@ -2,6 +2,7 @@
 
 use std::time::Duration;
 
+use tracer_core::scene::LoadLimits;
 use worker::protocol::JobSpec;
 
 /// Upper bounds on what a job may ask for; each breach is a 4xx with the limit in its message.
@@ -19,6 +20,12 @@ pub struct Limits {
     pub max_tile_size: u32,
     /// Frames in one frame-range job.
     pub max_frames: u32,
+    /// Decoded pixels of all the textures a scene uses, read from each PNG's header before it
+    /// is decoded.
+    pub max_texture_pixels: u64,
+    /// Spheres, triangles and each distinct mesh's triangles in one scene: what its geometry
+    /// and BVHs cost in memory (tracer-core also bounds the scene file's XML elements by it).
+    pub max_scene_primitives: u64,
 }
 
 impl Default for Limits {
@@ -32,11 +39,21 @@ impl Default for Limits {
             min_tile_size: 4,
             max_tile_size: 1024,
             max_frames: 10_000,
+            max_texture_pixels: LoadLimits::default().max_texture_pixels,
+            max_scene_primitives: LoadLimits::default().max_primitives,
         }
     }
 }
 
 impl Limits {
+    /// The scene budgets, as tracer-core's loader takes them.
+    pub fn load_limits(&self) -> LoadLimits {
+        LoadLimits {
+            max_texture_pixels: self.max_texture_pixels,
+            max_primitives: self.max_scene_primitives,
+        }
+    }
+
     /// Checks a job's settings against the limits and tracer-core's own validation.
     pub fn check(&self, spec: &JobSpec) -> Result<(), String> {
         let s = &spec.render;
@@ -106,6 +123,7 @@ pub struct FarmConfig {
     /// ...or this many times in all (a farm of one worker must also give up).
     pub max_tile_attempts: usize,
     pub limits: Limits,
+    pub connections: ConnectionLimits,
 }
 
 impl Default for FarmConfig {
@@ -119,6 +137,35 @@ impl Default for FarmConfig {
             max_tile_workers: 3,
             max_tile_attempts: 5,
             limits: Limits::default(),
+            connections: ConnectionLimits::default(),
+        }
+    }
+}
+
+/// How the HTTP server treats connections, so that clients that send slowly, or not at all,
+/// cannot hold the coordinator's descriptors or memory.
+#[derive(Clone, Debug)]
+pub struct ConnectionLimits {
+    /// A request's head must be complete this long after the connection opened, or after the
+    /// first byte of a later request on it arrived.
+    pub header_timeout: Duration,
+    /// A kept-alive connection that sends nothing for this long after a response is closed.
+    pub idle_timeout: Duration,
+    /// Connections served at once; further ones wait in the listen backlog. The server also
+    /// keeps it to three quarters of the descriptor limit.
+    pub max_connections: usize,
+    /// Requests that read an upload or build a scene (submit, resubmit, camera) at once;
+    /// further ones wait their turn before their body is read.
+    pub max_scene_builds: usize,
+}
+
+impl Default for ConnectionLimits {
+    fn default() -> Self {
+        Self {
+            header_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(60),
+            max_connections: 4096,
+            max_scene_builds: 2,
         }
     }
 }
