@@ -149,7 +149,8 @@ pub struct ConnectionLimits {
     /// A request's head must be complete this long after the connection opened, or after the
     /// first byte of a later request on it arrived.
     pub header_timeout: Duration,
-    /// A kept-alive connection that sends nothing for this long after a response is closed.
+    /// A kept-alive connection that sends nothing for this long after a response is closed;
+    /// a submission's upload that pauses this long is abandoned.
     pub idle_timeout: Duration,
     /// Connections served at once; further ones wait in the listen backlog. The server also
     /// keeps it to three quarters of the descriptor limit.

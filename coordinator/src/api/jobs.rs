@@ -5,6 +5,7 @@ use std::collections::HashMap;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::body::{Body, Bytes};
 use axum::extract::rejection::QueryRejection;
@@ -77,20 +78,40 @@ fn scene_file_name(raw: Option<&str>) -> String {
         .to_string()
 }
 
+/// What the body pump saw that the multipart parser's error cannot say.
+#[derive(Default)]
+struct UploadState {
+    too_large: AtomicBool,
+    stalled: AtomicBool,
+}
+
 /// Feeds the request body to the multipart parser up to the upload limit, and keeps reading
 /// (discarding) past it, or after the handler stopped reading, up to a hard cap. A client
 /// still sending its body when the error answer goes out would otherwise see its connection
-/// reset instead of the 4xx.
-fn pump_body(body: Body, limit: usize, too_large: Arc<AtomicBool>) -> Body {
+/// reset instead of the 4xx. A body that sends nothing for `stall` is abandoned, so a client
+/// cannot hold a scene-build turn by pausing its upload.
+fn pump_body(body: Body, limit: usize, stall: Duration, state: Arc<UploadState>) -> Body {
     let hard_cap = limit.saturating_mul(2).max(limit.saturating_add(64 << 20));
     let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(8);
     tokio::spawn(async move {
         let mut stream = body.into_data_stream();
         let (mut seen, mut forwarding) = (0usize, true);
-        while let Some(Ok(chunk)) = stream.next().await {
+        loop {
+            let chunk = match tokio::time::timeout(stall, stream.next()).await {
+                Ok(Some(Ok(chunk))) => chunk,
+                Ok(_) => break,
+                Err(_) => {
+                    if forwarding {
+                        state.stalled.store(true, Ordering::SeqCst);
+                        let err = std::io::Error::other("the upload stalled");
+                        let _ = tx.send(Err(err)).await;
+                    }
+                    break;
+                }
+            };
             seen += chunk.len();
             if forwarding && seen > limit {
-                too_large.store(true, Ordering::SeqCst);
+                state.too_large.store(true, Ordering::SeqCst);
                 let err = std::io::Error::other("the upload exceeds the limit");
                 let _ = tx.send(Err(err)).await;
                 forwarding = false;
@@ -110,11 +131,12 @@ fn pump_body(body: Body, limit: usize, too_large: Arc<AtomicBool>) -> Body {
 pub async fn submit(State(app): AppState, req: Request) -> Response {
     let farm = app.farm.clone();
     let limit = farm.config().limits.max_upload_bytes;
+    let stall = farm.config().connections.idle_timeout;
     // The upload is read, and the scene built, in turn with the other heavy requests.
     let _turn = app.scene_turn().await;
-    let too_large = Arc::new(AtomicBool::new(false));
+    let upload = Arc::new(UploadState::default());
     let (parts, body) = req.into_parts();
-    let req = Request::from_parts(parts, pump_body(body, limit, too_large.clone()));
+    let req = Request::from_parts(parts, pump_body(body, limit, stall, upload.clone()));
     let result = match Multipart::from_request(req, &()).await {
         Ok(multipart) => submit_inner(&app, multipart).await,
         Err(rejection) => Err(Failure(
@@ -128,10 +150,18 @@ pub async fn submit(State(app): AppState, req: Request) -> Response {
             (StatusCode::CREATED, Json(info)).into_response()
         }
         Err(failure) => {
-            let failure = if too_large.load(Ordering::SeqCst) {
+            let failure = if upload.too_large.load(Ordering::SeqCst) {
                 Failure(
                     StatusCode::PAYLOAD_TOO_LARGE,
                     ApiError::new(format!("the upload exceeds the limit of {limit} bytes")),
+                )
+            } else if upload.stalled.load(Ordering::SeqCst) {
+                Failure(
+                    StatusCode::REQUEST_TIMEOUT,
+                    ApiError::new(format!(
+                        "the upload sent nothing for {}s (the idle timeout); abandoned",
+                        stall.as_secs_f64()
+                    )),
                 )
             } else {
                 failure

@@ -63,7 +63,8 @@ pub struct ServeArgs {
     /// first byte of a later request; slower connections are closed.
     #[arg(long, default_value_t = ConnectionLimits::default().header_timeout.as_secs_f64())]
     pub header_timeout: f64,
-    /// Seconds a kept-alive connection may sit idle between requests before it is closed.
+    /// Seconds a kept-alive connection may sit idle between requests before it is closed;
+    /// also the longest pause in a submission's upload (then 408).
     #[arg(long, default_value_t = ConnectionLimits::default().idle_timeout.as_secs_f64())]
     pub idle_timeout: f64,
     /// Connections served at once (kept below three quarters of the descriptor limit);

@@ -481,3 +481,49 @@ async fn long_failure_messages_are_truncated_before_they_are_stored() {
     assert!(stored.starts_with("éé"), "{stored}");
     assert!(stored.contains("truncated"), "{stored}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_paused_upload_loses_its_turn_and_the_next_submission_goes_through() {
+    let tmp = tempfile::tempdir().unwrap();
+    let coord = start_coordinator(
+        &tmp.path().join("data"),
+        0,
+        &["--idle-timeout", "2", "--max-scene-builds", "1"],
+        tmp.path().join("c.log"),
+    );
+    let api = Api::new(&coord);
+    // Takes the only turn: headers and the start of a multipart body, then nothing.
+    let mut paused = TcpStream::connect(("127.0.0.1", coord.port)).unwrap();
+    let head = "POST /api/v1/jobs HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XYZ\r\n\
+                Content-Length: 100000\r\n\r\n\
+                --XYZ\r\nContent-Disposition: form-data; name=\"scene\"; filename=\"a.scene\"\r\n\r\n<scene>";
+    paused.write_all(head.as_bytes()).unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+
+    // Waits for the turn, which the paused upload gives up after the idle timeout.
+    let start = Instant::now();
+    let (status, body) = tokio::time::timeout(
+        Duration::from_secs(60),
+        api.submit(one_tile(), "spheres.scene", &spheres()),
+    )
+    .await
+    .expect("the turn was never given up");
+    assert_eq!(status, StatusCode::CREATED, "{body}");
+    assert!(
+        start.elapsed() >= Duration::from_millis(1500),
+        "the submission did not wait for the paused one's turn"
+    );
+    let answer = tokio::task::spawn_blocking(move || {
+        paused
+            .set_read_timeout(Some(Duration::from_secs(20)))
+            .unwrap();
+        let mut answer = Vec::new();
+        let _ = paused.read_to_end(&mut answer);
+        String::from_utf8_lossy(&answer).to_string()
+    })
+    .await
+    .unwrap();
+    assert!(answer.starts_with("HTTP/1.1 408"), "{answer}");
+    assert!(answer.contains("idle timeout"), "{answer}");
+}
