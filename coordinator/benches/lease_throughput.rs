@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 use coordinator::clock::SystemClock;
 use coordinator::config::FarmConfig;
 use coordinator::farm::{Farm, NewJob};
-use worker::protocol::{pixels_to_bytes, JobSpec, LeaseRequest};
-use worker::Client;
+use protocol::client::Client;
+use protocol::{pixels_to_bytes, JobSpec, LeaseRequest};
 
 fn main() {
     let args: Vec<String> = std::env::args()
@@ -70,8 +70,9 @@ async fn run(workers: usize, tile: u32, duration: Duration) {
         let (client, blank, done, stop) =
             (client.clone(), blank.clone(), done.clone(), stop.clone());
         tasks.push(tokio::spawn(async move {
+            let identity = client.register(&format!("sim-{i}")).await.unwrap();
             let req = LeaseRequest {
-                worker: format!("sim-{i}"),
+                worker_id: identity.worker_id,
                 wait_ms: 0,
             };
             while !stop.load(Ordering::Relaxed) {

@@ -335,7 +335,15 @@ function select(id) {
 
 async function loadTiles(id) {
   try {
-    const tiles = await (await api(`/jobs/${id}/tiles`)).json();
+    // The route answers a page at a time (docs/api.md): read them all, in order.
+    const tiles = [];
+    for (let total = 1; tiles.length < total; ) {
+      const page = await (await api(`/jobs/${id}/tiles?offset=${tiles.length}`)).json();
+      if (state.selected !== id) return;
+      total = page.tiles_total;
+      if (!page.tiles.length) break;
+      tiles.push(...page.tiles);
+    }
     if (state.selected !== id) return;
     state.tiles = tiles;
     const job = state.jobs.get(id);

@@ -2,8 +2,10 @@
 
 use std::time::Duration;
 
+use protocol::JobSpec;
 use tracer_core::scene::LoadLimits;
-use worker::protocol::JobSpec;
+
+use crate::farm::TileGrid;
 
 /// Upper bounds on what a job may ask for; each breach is a 4xx with the limit in its message.
 #[derive(Clone, Debug)]
@@ -20,6 +22,9 @@ pub struct Limits {
     pub max_tile_size: u32,
     /// Frames in one frame-range job.
     pub max_frames: u32,
+    /// Tiles in one job, every frame counted (`--max-job-tiles`): each costs a bit of memory
+    /// and, when it runs, a lease and a file.
+    pub max_job_tiles: u64,
     /// Decoded pixels of all the textures a scene uses, read from each PNG's header before it
     /// is decoded.
     pub max_texture_pixels: u64,
@@ -39,6 +44,7 @@ impl Default for Limits {
             min_tile_size: 4,
             max_tile_size: 1024,
             max_frames: 10_000,
+            max_job_tiles: 1_000_000,
             max_texture_pixels: LoadLimits::default().max_texture_pixels,
             max_scene_primitives: LoadLimits::default().max_primitives,
         }
@@ -52,6 +58,21 @@ impl Limits {
             max_texture_pixels: self.max_texture_pixels,
             max_primitives: self.max_scene_primitives,
         }
+    }
+
+    /// Checks a job's tile count (frames × tiles per frame) against the budget.
+    pub fn check_tiles(&self, grid: &TileGrid) -> Result<(), String> {
+        let tiles = grid.total_u64();
+        // A tile index is a u32 however high the budget is set.
+        let limit = self.max_job_tiles.min(u32::MAX as u64);
+        if tiles > limit {
+            return Err(format!(
+                "the job has {tiles} tiles ({} per frame), over the limit of {limit} tiles per \
+                 job (--max-job-tiles); use fewer frames or a larger tile_size",
+                grid.per_frame()
+            ));
+        }
+        Ok(())
     }
 
     /// Checks a job's settings against the limits and tracer-core's own validation.
@@ -96,6 +117,7 @@ impl Limits {
                 ));
             }
         }
+        self.check_tiles(&TileGrid::new(spec))?;
         if let Some(name) = &spec.name {
             if name.len() > 200 {
                 return Err("a job name is at most 200 bytes".into());
@@ -122,6 +144,9 @@ pub struct FarmConfig {
     pub max_tile_workers: usize,
     /// ...or this many times in all (a farm of one worker must also give up).
     pub max_tile_attempts: usize,
+    /// Worker identities kept (`--max-workers`); registering beyond it forgets the
+    /// longest-silent worker that holds no lease.
+    pub max_workers: usize,
     pub limits: Limits,
     pub connections: ConnectionLimits,
 }
@@ -136,6 +161,7 @@ impl Default for FarmConfig {
             stragglers: true,
             max_tile_workers: 3,
             max_tile_attempts: 5,
+            max_workers: 10_000,
             limits: Limits::default(),
             connections: ConnectionLimits::default(),
         }
@@ -197,5 +223,13 @@ mod tests {
         spec.render.max_depth = 5;
         spec.render.width = 0;
         assert!(limits.check(&spec).is_err());
+        spec.render.width = 8192;
+        spec.render.height = 8192;
+        spec.tile_size = 8;
+        assert!(limits.check(&spec).unwrap_err().contains("--max-job-tiles"));
+        spec.tile_size = 16;
+        assert!(limits.check(&spec).is_ok(), "262144 tiles fit");
+        spec.frames = Some(tracer_core::FrameRange::new(0, 9).unwrap());
+        assert!(limits.check(&spec).unwrap_err().contains("2621440 tiles"));
     }
 }

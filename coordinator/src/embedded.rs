@@ -5,9 +5,10 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
+use protocol::client::{Client, ClientError};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
-use worker::{Client, ClientError, SceneCache, Shutdown, Worker, WorkerConfig, WorkerStats};
+use worker::{SceneCache, Shutdown, Worker, WorkerConfig, WorkerStats};
 
 use crate::clock::SystemClock;
 use crate::config::FarmConfig;
@@ -34,7 +35,7 @@ fn local_token() -> String {
     if let Ok(random) = std::fs::read("/proc/sys/kernel/random/uuid") {
         seed.push_str(&String::from_utf8_lossy(&random));
     }
-    worker::hash_hex(seed.as_bytes())
+    protocol::hash_hex(seed.as_bytes())
 }
 
 impl EmbeddedFarm {

@@ -10,8 +10,8 @@
 //! - [`embedded`]: an in-process farm (coordinator + local workers) on loopback.
 //! - [`cli`]: the `serve`, `render` (embedded farm), `report` and `submit` commands.
 //!
-//! The wire types live in [`worker::protocol`] (re-exported as [`protocol`]): the worker crate
-//! is the bottom of the graph so the embedded `render` can run in-process workers.
+//! The wire types and the client live in the `protocol` crate (re-exported as [`protocol`]);
+//! the worker crate is named only by [`embedded`] and [`cli`], which run in-process workers.
 
 pub mod api;
 pub mod cli;
@@ -23,4 +23,4 @@ pub mod metrics;
 pub mod server;
 pub mod store;
 
-pub use worker::protocol;
+pub use protocol;

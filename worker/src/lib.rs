@@ -1,30 +1,14 @@
-//! Tessera's farm worker and the farm's wire protocol.
+//! Tessera's farm worker. The wire types and the HTTP client it speaks live in the
+//! `protocol` crate.
 //!
-//! - [`protocol`]: every JSON body and route of the coordinator's HTTP API.
-//! - [`client`]: a typed client for that API (workers, `coordinator submit`, tests).
 //! - [`scenes`]: each job's scene fetched and built once, shared by in-process workers.
 //! - [`run`]: the pull loop: lease, render with heartbeats, complete; back-off and hand-back.
 
-pub mod client;
-pub mod protocol;
 pub mod run;
 pub mod scenes;
 
-pub use client::{Client, ClientError, Submission};
 pub use run::{Shutdown, Worker, WorkerConfig, WorkerStats};
 pub use scenes::SceneCache;
-
-use sha2::{Digest, Sha256};
-
-/// Lower-case hex SHA-256: the content address of scene files and assets.
-pub fn hash_hex(bytes: &[u8]) -> String {
-    let digest = Sha256::digest(bytes);
-    let mut out = String::with_capacity(64);
-    for b in digest {
-        out.push_str(&format!("{b:02x}"));
-    }
-    out
-}
 
 /// The number of cores this process may use.
 pub fn available_cores() -> usize {

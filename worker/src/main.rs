@@ -5,7 +5,8 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::Parser;
-use worker::{available_cores, Client, SceneCache, Shutdown, Worker, WorkerConfig};
+use protocol::client::Client;
+use worker::{available_cores, SceneCache, Shutdown, Worker, WorkerConfig};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -23,7 +24,7 @@ struct Args {
     /// Render threads [default: every core].
     #[arg(long)]
     threads: Option<usize>,
-    /// A name unique in the farm [default: host-pid].
+    /// A label for listings and logs [default: host-pid]; the coordinator issues the identity.
     #[arg(long, env = "TESSERA_WORKER_NAME")]
     name: Option<String>,
     /// Longest pause between retries while the coordinator is unreachable, in seconds.

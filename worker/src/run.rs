@@ -8,13 +8,13 @@ use std::time::{Duration, Instant};
 use tokio::sync::watch;
 use tracer_core::{Image, Renderer};
 
-use crate::client::{Client, ClientError};
-use crate::protocol::{pixels_to_bytes, FailureReport, Lease, LeaseRequest};
 use crate::scenes::{LoadError, SceneCache};
+use protocol::client::{Client, ClientError};
+use protocol::{pixels_to_bytes, FailureReport, Lease, LeaseRequest};
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
-    /// Unique per worker process; failures and leases are keyed by it.
+    /// A label for listings and logs; the coordinator issues the identity leases are keyed by.
     pub name: String,
     /// Render threads (the worker's own rayon pool).
     pub threads: usize,
@@ -118,17 +118,20 @@ impl Worker {
     pub async fn run(&self, mut shutdown: Shutdown) -> Result<WorkerStats, ClientError> {
         let mut stats = WorkerStats::default();
         let mut backoff = Backoff::new(Duration::from_millis(100), self.config.max_backoff);
-        let request = LeaseRequest {
-            worker: self.config.name.clone(),
-            wait_ms: self.config.poll_wait.as_millis() as u64,
-        };
+        let wait_ms = self.config.poll_wait.as_millis() as u64;
+        // Registered lazily, and again whenever the coordinator forgets the id.
+        let mut request: Option<LeaseRequest> = None;
         let mut reported_down = false;
         while !shutdown.is_set() {
             let answer = tokio::select! {
-                answer = self.client.lease(&request) => answer,
+                answer = self.next_lease(&mut request, wait_ms) => answer,
                 _ = shutdown.wait() => break,
             };
             match answer {
+                Err(ClientError::UnknownWorker(why)) => {
+                    tracing::warn!("{why}; registering again");
+                    request = None;
+                }
                 Ok(lease) => {
                     if reported_down {
                         tracing::info!("coordinator {} is back", self.client.base_url());
@@ -155,6 +158,30 @@ impl Worker {
             }
         }
         Ok(stats)
+    }
+
+    /// Registers when there is no identity yet, then asks for a tile.
+    async fn next_lease(
+        &self,
+        request: &mut Option<LeaseRequest>,
+        wait_ms: u64,
+    ) -> Result<Option<Lease>, ClientError> {
+        let req = match request {
+            Some(req) => req,
+            None => {
+                let identity = self.client.register(&self.config.name).await?;
+                tracing::info!(
+                    "registered as worker {} ({})",
+                    identity.worker_id,
+                    identity.name
+                );
+                request.insert(LeaseRequest {
+                    worker_id: identity.worker_id,
+                    wait_ms,
+                })
+            }
+        };
+        self.client.lease(req).await
     }
 
     async fn work(

@@ -9,7 +9,7 @@ use tokio::sync::OnceCell;
 use tracer_core::scene::SceneDescription;
 use tracer_core::{MemoryAssets, Scene};
 
-use crate::client::{Client, ClientError};
+use protocol::client::{Client, ClientError};
 
 /// How many jobs' scenes stay loaded: the current one and a few recent ones, so tiles of
 /// interleaved jobs (stragglers) don't rebuild scenes.
@@ -72,7 +72,7 @@ async fn load(client: &Client, job_id: u64) -> Result<Arc<Scene>, LoadError> {
     for file in &bundle.assets {
         if !by_hash.contains_key(file.hash.as_str()) {
             let bytes = client.blob(&file.hash).await.map_err(fetch)?;
-            if crate::hash_hex(&bytes) != file.hash {
+            if protocol::hash_hex(&bytes) != file.hash {
                 return Err(LoadError::Fetch(format!(
                     "asset {} arrived corrupted (hash mismatch)",
                     file.path

@@ -9,9 +9,9 @@ use std::time::Duration;
 
 use axum::response::sse::{Event, KeepAlive, Sse};
 use futures_util::Stream;
+use protocol::{EVENT_JOB, EVENT_RESYNC, EVENT_TILE, EVENT_WORKERS};
 use tokio::sync::broadcast::error::{RecvError, TryRecvError};
 use tokio::sync::broadcast::Receiver;
-use worker::protocol::{EVENT_JOB, EVENT_RESYNC, EVENT_TILE, EVENT_WORKERS};
 
 use super::AppState;
 use crate::farm::{Farm, FarmEvent};

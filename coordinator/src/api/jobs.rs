@@ -14,13 +14,13 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use futures_util::StreamExt;
+use protocol::{
+    check_bundle_path, ApiError, Bundle, BundleFile, JobCamera, JobInfo, JobSpec, TilePage,
+    CONTENT_TYPE_BLOB_REF, MAX_TILE_PAGE, PART_JOB, PART_SCENE,
+};
 use serde::Deserialize;
 use tracer_core::scene::SceneDescription;
 use tracer_core::{MemoryAssets, Scene, SceneError};
-use worker::protocol::{
-    check_bundle_path, ApiError, Bundle, BundleFile, JobCamera, JobInfo, JobSpec, TileInfo,
-    CONTENT_TYPE_BLOB_REF, PART_JOB, PART_SCENE,
-};
 
 use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
 use crate::farm::{Farm, NewJob};
@@ -445,8 +445,29 @@ fn archive_stem(name: &str) -> String {
     }
 }
 
-pub async fn tiles(State(app): AppState, Path(id): Path<String>) -> ApiResult<Json<Vec<TileInfo>>> {
-    Ok(Json(app.farm.tiles(parse_id("job", &id)?)?))
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TileQuery {
+    #[serde(default)]
+    offset: u32,
+    limit: Option<u32>,
+}
+
+/// One page of the tile map: `?offset=&limit=`, at most [`MAX_TILE_PAGE`] tiles.
+pub async fn tiles(
+    State(app): AppState,
+    Path(id): Path<String>,
+    query: Result<Query<TileQuery>, QueryRejection>,
+) -> ApiResult<Json<TilePage>> {
+    let id = parse_id("job", &id)?;
+    let Query(query) = query.map_err(|e| Failure::bad_request(e.body_text()))?;
+    let limit = query.limit.unwrap_or(MAX_TILE_PAGE);
+    if limit > MAX_TILE_PAGE {
+        return Err(Failure::bad_request(format!(
+            "limit {limit} is over the largest page of {MAX_TILE_PAGE} tiles"
+        )));
+    }
+    Ok(Json(app.farm.tiles(id, query.offset, limit)?))
 }
 
 /// Where the job looks from: its camera override, or the scene's camera read from its file.

@@ -10,7 +10,7 @@ use axum::extract::{ConnectInfo, Path, State};
 use axum::http::{Extensions, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
-use worker::protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
+use protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
 
 use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
 use crate::farm::FarmError;
@@ -36,14 +36,11 @@ pub async fn lease(
     body: Bytes,
 ) -> ApiResult<Response> {
     let req: LeaseRequest = parse_json(&body)?;
-    if req.worker.is_empty() || req.worker.len() > 200 {
-        return Err(Failure::bad_request("a worker name is 1 to 200 bytes"));
-    }
     let farm = &app.farm;
     // Present when the server was started with connection info (it always is but in tests
     // that build the router alone).
     if let Some(ConnectInfo(peer)) = extensions.get::<ConnectInfo<SocketAddr>>() {
-        farm.worker_address(&req.worker, peer.to_string());
+        farm.worker_address(req.worker_id, peer.to_string());
     }
     let start = Instant::now();
     let wait = Duration::from_millis(req.wait_ms).min(farm.config().max_poll_wait);
@@ -56,7 +53,7 @@ pub async fn lease(
         if farm.is_stopping() {
             break;
         }
-        if let Some(lease) = farm.lease(&req.worker)? {
+        if let Some(lease) = farm.lease(req.worker_id)? {
             farm.metrics.observe_lease_latency(start.elapsed());
             return Ok(Json(lease).into_response());
         }
@@ -111,7 +108,7 @@ fn first_non_finite(pixels: &[u8]) -> Option<usize> {
 
 /// What a completion's blocking part decided.
 enum Outcome {
-    Stored(Completion, Option<u64>),
+    Stored(Completion),
     /// The pixels held a non-finite value: the lease ended as a failure and the tile went
     /// back to the queue.
     NonFinite(String),
@@ -139,29 +136,16 @@ pub async fn complete(
                 };
                 farm.fail(id, &report).map(|_| Outcome::NonFinite(error))
             }
-            None => farm
-                .complete(id, &body)
-                .map(|(done, finished)| Outcome::Stored(done, finished)),
+            None => farm.complete(id, &body).map(Outcome::Stored),
         })
     })
     .await?;
-    let (done, finished_job) = match counted(&app, result)? {
-        Outcome::Stored(done, finished_job) => (done, finished_job),
-        Outcome::NonFinite(error) => {
-            return Err(Failure::bad_request(format!(
-                "{error}; refused, and the tile is queued again"
-            )))
-        }
-    };
-    if let Some(job_id) = finished_job {
-        let farm = app.farm.clone();
-        tokio::task::spawn_blocking(move || {
-            if let Err(e) = farm.assemble(job_id) {
-                tracing::error!("job {job_id}: assembling the image failed: {e}");
-            }
-        });
+    match counted(&app, result)? {
+        Outcome::Stored(done) => Ok(Json(done)),
+        Outcome::NonFinite(error) => Err(Failure::bad_request(format!(
+            "{error}; refused, and the tile is queued again"
+        ))),
     }
-    Ok(Json(done))
 }
 
 pub async fn fail(
@@ -199,11 +183,11 @@ mod tests {
 
     #[test]
     fn non_finite_pixels_are_found() {
-        let mut pixels = worker::protocol::pixels_to_bytes(&[0.0, 1.5, 1e30, -2.0]);
+        let mut pixels = protocol::pixels_to_bytes(&[0.0, 1.5, 1e30, -2.0]);
         assert_eq!(first_non_finite(&pixels), None);
         pixels.extend_from_slice(&f32::NAN.to_le_bytes());
         assert_eq!(first_non_finite(&pixels), Some(4));
-        let inf = worker::protocol::pixels_to_bytes(&[0.0, f32::INFINITY]);
+        let inf = protocol::pixels_to_bytes(&[0.0, f32::INFINITY]);
         assert_eq!(first_non_finite(&inf), Some(1));
     }
 }

@@ -1,11 +1,14 @@
 //! The HTTP API (`docs/api.md`): one file per resource, bearer-token authentication, and the
-//! mapping from farm errors to status codes with JSON bodies.
+//! mapping from farm errors to status codes with JSON bodies. The router is built from
+//! [`protocol::routes::ROUTES`]: every route there gets its handler here, and nothing else is
+//! served but the dashboard's static files. Handlers only translate requests for the farm.
 
 mod blobs;
 mod dashboard;
 mod events;
 mod jobs;
 mod leases;
+mod workers;
 
 use std::sync::Arc;
 
@@ -13,12 +16,13 @@ use axum::extract::{DefaultBodyLimit, Request, State};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post, put};
+use axum::routing::{delete, get, post, put, MethodRouter};
 use axum::{Json, Router};
+use protocol::routes::{RouteId, ROUTES};
+use protocol::{ApiError, API_PREFIX};
 use sha2::{Digest, Sha256};
 use subtle::ConstantTimeEq;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
-use worker::protocol::{ApiError, API_PREFIX};
 
 use crate::farm::{Farm, FarmError};
 
@@ -166,10 +170,6 @@ async fn metrics(State(app): AppState) -> Response {
         .into_response()
 }
 
-async fn workers(State(app): AppState) -> Json<Vec<worker::protocol::WorkerInfo>> {
-    Json(app.farm.workers())
-}
-
 async fn not_found() -> Failure {
     Failure::not_found("no such route; see docs/api.md")
 }
@@ -214,6 +214,37 @@ async fn json_errors(req: Request, next: Next) -> Response {
     Response::from_parts(parts, axum::body::Body::from(body))
 }
 
+/// The handler of each route in the table; the match is exhaustive, so a route added to the
+/// table without a handler does not compile.
+fn handler(id: RouteId) -> MethodRouter<Arc<App>> {
+    match id {
+        // Submissions enforce the upload limit themselves, draining what lies beyond it.
+        RouteId::SubmitJob => post(jobs::submit).layer(DefaultBodyLimit::disable()),
+        RouteId::ListJobs => get(jobs::list),
+        RouteId::ShowJob => get(jobs::show),
+        RouteId::CancelJob => delete(jobs::cancel),
+        RouteId::RetryJob => post(jobs::retry),
+        RouteId::JobImage => get(jobs::image),
+        RouteId::JobFramesTar => get(jobs::frames_tar),
+        RouteId::JobBundle => get(jobs::bundle),
+        RouteId::JobTiles => get(jobs::tiles),
+        RouteId::JobCamera => get(jobs::camera),
+        RouteId::ResubmitJob => post(jobs::resubmit),
+        RouteId::RegisterWorker => post(workers::register),
+        RouteId::ListWorkers => get(workers::list),
+        RouteId::Events => get(events::stream),
+        RouteId::MissingBlobs => post(blobs::missing),
+        RouteId::Blob => get(blobs::show),
+        RouteId::Lease => post(leases::lease),
+        RouteId::HandBack => delete(leases::hand_back),
+        RouteId::Heartbeat => post(leases::heartbeat),
+        RouteId::Pixels => put(leases::complete),
+        RouteId::Failure => post(leases::fail),
+        RouteId::Healthz => get(healthz),
+        RouteId::Metrics => get(metrics),
+    }
+}
+
 /// The whole API. `/healthz` and the dashboard's static files answer without a token
 /// (liveness probes carry none, the page asks for it, and neither reveals anything); every
 /// other route needs it when one is set.
@@ -225,41 +256,39 @@ pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
         token_digest: token.map(|t| Sha256::digest(t.as_bytes()).into()),
         scene_builds: Arc::new(Semaphore::new(scene_builds)),
     });
-    let api = Router::new()
-        // Submissions enforce the upload limit themselves, draining what lies beyond it.
-        .route(
-            "/jobs",
-            post(jobs::submit)
-                .layer(DefaultBodyLimit::disable())
-                .get(jobs::list),
-        )
-        .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
-        .route("/jobs/{id}/retry", post(jobs::retry))
-        .route("/jobs/{id}/image", get(jobs::image))
-        .route("/jobs/{id}/frames.tar", get(jobs::frames_tar))
-        .route("/jobs/{id}/bundle", get(jobs::bundle))
-        .route("/jobs/{id}/tiles", get(jobs::tiles))
-        .route("/jobs/{id}/camera", get(jobs::camera))
-        .route("/jobs/{id}/resubmit", post(jobs::resubmit))
-        .route("/workers", get(workers))
-        .route("/events", get(events::stream))
-        .route("/blobs/missing", post(blobs::missing))
-        .route("/blobs/{hash}", get(blobs::show))
-        .route("/leases", post(leases::lease))
-        .route("/leases/{id}", axum::routing::delete(leases::hand_back))
-        .route("/leases/{id}/heartbeat", post(leases::heartbeat))
-        .route("/leases/{id}/pixels", put(leases::complete))
-        .route("/leases/{id}/failure", post(leases::fail));
-    let guarded = Router::new()
+    let (mut api, mut guarded, mut open) = (Router::new(), Router::new(), Router::new());
+    for route in ROUTES {
+        let method_router = handler(route.id);
+        if route.id == RouteId::Healthz {
+            open = open.route(route.path, method_router);
+        } else if route.prefixed {
+            api = api.route(route.path, method_router);
+        } else {
+            guarded = guarded.route(route.path, method_router);
+        }
+    }
+    let guarded = guarded
         .nest(API_PREFIX, api)
-        .route("/metrics", get(metrics))
         .route_layer(middleware::from_fn_with_state(app.clone(), authenticate));
-    Router::new()
-        .route("/healthz", get(healthz))
-        .merge(dashboard::routes())
+    open.merge(dashboard::routes())
         .merge(guarded)
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(limit))
         .layer(middleware::from_fn(json_errors))
         .with_state(app)
+}
+
+#[cfg(test)]
+mod tests {
+    use protocol::routes::ROUTES;
+
+    /// docs/api.md documents every route of the table under its own heading.
+    #[test]
+    fn every_route_is_documented() {
+        let docs = include_str!("../../../docs/api.md");
+        for route in ROUTES {
+            let heading = format!("### `{} {}`", route.method, route.full_path());
+            assert!(docs.contains(&heading), "docs/api.md lacks {heading}");
+        }
+    }
 }

@@ -10,9 +10,9 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
+use protocol::{JobSpec, DEFAULT_TILE_SIZE};
 use tracer_core::settings::parse_vec3;
 use tracer_core::{CameraOverride, CausticsSettings, FrameRange, RenderSettings, TextureFilter};
-use worker::protocol::{JobSpec, DEFAULT_TILE_SIZE};
 
 pub use submit::collect_submission;
 
@@ -166,8 +166,8 @@ fn write_png(path: &Path, png: &[u8]) -> Result<(), String> {
 /// Downloads a finished job's image to `output`, or each frame of a frame-range job to
 /// `output` numbered (out.png → out_0003.png). Returns the files written.
 async fn download(
-    client: &worker::Client,
-    job: &worker::protocol::JobInfo,
+    client: &protocol::client::Client,
+    job: &protocol::JobInfo,
     output: &Path,
 ) -> Result<Vec<PathBuf>, String> {
     let Some(range) = job.spec.frames else {

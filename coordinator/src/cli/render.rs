@@ -6,8 +6,8 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use clap::Args;
+use protocol::JobState;
 use worker::available_cores;
-use worker::protocol::JobState;
 
 use super::submit::{collect_submission, describe, wait_for};
 use super::SettingsArgs;
@@ -73,7 +73,7 @@ fn render(args: RenderArgs) -> Result<(), String> {
 /// PNG. Ctrl-C cancels the job.
 async fn submit_and_wait(
     farm: &EmbeddedFarm,
-    submission: &worker::Submission,
+    submission: &protocol::client::Submission,
     output: &std::path::Path,
     start: Instant,
 ) -> Result<(), String> {

@@ -7,13 +7,13 @@ use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
 use clap::Args;
+use protocol::{JobSpec, JobState, DEFAULT_TILE_SIZE};
 use tracer_core::convergence::Measurement;
 use tracer_core::report::{
     measure, print_row, reference_image, timed_render, write_report, ReportMeta,
 };
 use tracer_core::{Image, RenderSettings, Scene};
 use worker::available_cores;
-use worker::protocol::{JobSpec, JobState, DEFAULT_TILE_SIZE};
 
 use super::submit::{collect_submission, describe};
 use crate::embedded::EmbeddedFarm;

@@ -51,6 +51,12 @@ pub struct ServeArgs {
     /// Largest ray depth.
     #[arg(long, default_value_t = Limits::default().max_depth)]
     pub max_depth: u32,
+    /// Most tiles in one job, every frame counted (frames × tiles per frame).
+    #[arg(long, default_value_t = Limits::default().max_job_tiles)]
+    pub max_job_tiles: u64,
+    /// Most worker identities kept; registering beyond it forgets the longest-silent idle one.
+    #[arg(long, default_value_t = FarmConfig::default().max_workers)]
+    pub max_workers: usize,
     /// Decoded pixels of all a scene's textures together (each PNG's header is read before
     /// it is decoded).
     #[arg(long, default_value_t = Limits::default().max_texture_pixels)]
@@ -105,10 +111,12 @@ impl ServeArgs {
                 max_dimension: self.max_dimension,
                 max_spp: self.max_spp,
                 max_depth: self.max_depth,
+                max_job_tiles: self.max_job_tiles,
                 max_texture_pixels: self.max_texture_pixels,
                 max_scene_primitives: self.max_scene_primitives,
                 ..Limits::default()
             },
+            max_workers: self.max_workers.max(1),
             connections: ConnectionLimits {
                 header_timeout: secs(self.header_timeout, "header-timeout")?,
                 idle_timeout: secs(self.idle_timeout, "idle-timeout")?,

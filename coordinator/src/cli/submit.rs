@@ -7,10 +7,10 @@ use std::time::Duration;
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use protocol::client::{Client, ClientError, Submission};
+use protocol::{JobInfo, JobSpec, JobState};
 use tracer_core::scene::SceneDescription;
 use tracer_core::{AssetSource, FsAssets};
-use worker::protocol::{JobInfo, JobSpec, JobState};
-use worker::{Client, ClientError, Submission};
 
 use super::SettingsArgs;
 

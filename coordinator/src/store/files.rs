@@ -7,8 +7,8 @@ use std::io::{ErrorKind, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use protocol::pixels_from_bytes;
 use tracer_core::{Image, TileRect};
-use worker::protocol::{pixels_from_bytes, pixels_to_bytes};
 
 use super::StoreError;
 
@@ -71,7 +71,7 @@ impl Files {
 
     /// Stores `bytes` under their hash unless already there; returns the hash.
     pub fn put_blob(&self, bytes: &[u8]) -> Result<String, StoreError> {
-        let hash = worker::hash_hex(bytes);
+        let hash = protocol::hash_hex(bytes);
         let path = self.blob_path(&hash);
         if !path.exists() {
             self.write_atomic(&path, bytes)?;
@@ -175,11 +175,6 @@ impl Files {
     }
 }
 
-/// Encodes pixels for [`Files::put_tile`] (the wire format is the file format).
-pub fn tile_bytes(image: &Image) -> Vec<u8> {
-    pixels_to_bytes(&image.pixels)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -212,7 +207,9 @@ mod tests {
             let mut tile = Image::new(rect.width, rect.height);
             tile.pixels.iter_mut().for_each(|p| *p = i as f32 / 4.0);
             expected.insert(*rect, &tile);
-            files.put_tile(7, i as u32, &tile_bytes(&tile)).unwrap();
+            files
+                .put_tile(7, i as u32, &protocol::pixels_to_bytes(&tile.pixels))
+                .unwrap();
         }
         let all: Vec<(u32, TileRect)> = rects
             .iter()

@@ -4,7 +4,7 @@
 pub mod db;
 pub mod files;
 
-pub use db::{Db, StoredJob, StoredLease};
+pub use db::{Db, JobRow, LoadedJob, StoredJob, StoredLease, StoredWorker, UnloadableJob};
 pub use files::Files;
 
 #[derive(Debug, thiserror::Error)]

@@ -235,9 +235,19 @@ async fn bad_submissions_get_clear_4xx_and_the_server_keeps_serving() {
         .await;
     assert_eq!(status, StatusCode::CREATED, "{body}");
     assert_eq!(body["tiles_total"], 4);
+    let identity: Value = api
+        .authed(api.http.post(format!("{}/api/v1/workers", coord.url)))
+        .json(&json!({"name": "manual"}))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let worker_id = identity["worker_id"].as_u64().unwrap();
     let lease: Value = api
         .authed(api.http.post(format!("{}/api/v1/leases", coord.url)))
-        .json(&json!({"worker": "manual", "wait_ms": 0}))
+        .json(&json!({"worker_id": worker_id, "wait_ms": 0}))
         .send()
         .await
         .unwrap()
@@ -303,7 +313,7 @@ async fn unchanged_assets_are_stored_and_uploaded_once() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let coord = start_coordinator(&data, 0, &[], tmp.path().join("c.log"));
-    let client = worker::Client::new(&coord.url, None).unwrap();
+    let client = protocol::client::Client::new(&coord.url, None).unwrap();
     let scene = course_scene("cube.scene");
     let mut spec = small_spec(1, 16);
     spec.render.width = 32;

@@ -13,9 +13,9 @@ use std::time::{Duration, Instant};
 
 use fantoccini::elements::Element;
 use fantoccini::{Client as Browser, ClientBuilder, Locator};
+use protocol::client::Client;
+use protocol::JobState;
 use serde_json::{json, Value};
-use worker::protocol::JobState;
-use worker::Client;
 
 use crate::helpers::*;
 

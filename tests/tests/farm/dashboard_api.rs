@@ -3,10 +3,10 @@
 
 use std::time::{Duration, Instant};
 
+use protocol::client::Client;
+use protocol::{JobState, TilePage, TileState, WorkerInfo, WorkerState};
 use reqwest::StatusCode;
 use serde_json::{json, Value};
-use worker::protocol::{JobState, TileInfo, TileState, WorkerInfo, WorkerState};
-use worker::Client;
 
 use crate::helpers::*;
 
@@ -99,10 +99,25 @@ async fn dashboard_routes_report_tiles_workers_and_events_and_resubmit() {
     spec.render.height = 48;
     let cube = course_scene("cube.scene");
     let job = submit(&client, &cube, spec.clone()).await;
-    let (status, tiles) = api.get(&format!("/jobs/{}/tiles", job.id)).await;
+    let (status, page) = api.get(&format!("/jobs/{}/tiles", job.id)).await;
     assert_eq!(status, StatusCode::OK);
-    let tiles: Vec<TileInfo> = serde_json::from_value(tiles).unwrap();
+    let page: TilePage = serde_json::from_value(page).unwrap();
+    assert_eq!((page.tiles_total, page.offset), (12, 0));
+    let tiles = page.tiles;
     assert_eq!(tiles.len(), 12);
+    // Pages: a window of the map, and a limit over the largest page refused.
+    let (status, page) = api
+        .get(&format!("/jobs/{}/tiles?offset=10&limit=5", job.id))
+        .await;
+    assert_eq!(status, StatusCode::OK, "{page}");
+    let page: TilePage = serde_json::from_value(page).unwrap();
+    assert_eq!(
+        page.tiles.iter().map(|t| t.tile).collect::<Vec<_>>(),
+        [10, 11]
+    );
+    let (status, body) = api.get(&format!("/jobs/{}/tiles?limit=4097", job.id)).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+    assert!(body["error"].as_str().unwrap().contains("4096"), "{body}");
     assert!(tiles
         .iter()
         .all(|t| t.state == TileState::Queued && t.workers.is_empty()));
@@ -191,8 +206,8 @@ async fn dashboard_routes_report_tiles_workers_and_events_and_resubmit() {
         assert!(last.contains("\"state\":\"done\""), "{last}");
     }
 
-    let (_, tiles) = api.get(&format!("/jobs/{}/tiles", job.id)).await;
-    let tiles: Vec<TileInfo> = serde_json::from_value(tiles).unwrap();
+    let (_, page) = api.get(&format!("/jobs/{}/tiles", job.id)).await;
+    let tiles = serde_json::from_value::<TilePage>(page).unwrap().tiles;
     assert!(tiles
         .iter()
         .all(|t| t.state == TileState::Done && t.attempts == 0));

@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use worker::protocol::JobState;
-use worker::Client;
+use protocol::client::Client;
+use protocol::JobState;
 
 use crate::helpers::*;
 

@@ -4,8 +4,8 @@
 
 use std::time::{Duration, Instant};
 
-use worker::protocol::JobState;
-use worker::Client;
+use protocol::client::Client;
+use protocol::JobState;
 
 use crate::helpers::*;
 

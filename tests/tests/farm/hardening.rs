@@ -104,12 +104,19 @@ impl Api {
         (status, body)
     }
 
-    /// A lease for `worker`, granted at once (the job's tiles are queued).
+    /// A lease for a new worker named `worker` (registered first), granted at once (the
+    /// job's tiles are queued).
     async fn lease(&self, worker: &str) -> Value {
         let req = self
             .http
+            .post(format!("{}/api/v1/workers", self.url))
+            .json(&json!({ "name": worker }));
+        let (status, _, identity) = self.send(req).await;
+        assert_eq!(status, StatusCode::CREATED, "{identity}");
+        let req = self
+            .http
             .post(format!("{}/api/v1/leases", self.url))
-            .json(&json!({"worker": worker, "wait_ms": 2000}));
+            .json(&json!({"worker_id": identity["worker_id"], "wait_ms": 2000}));
         let (status, _, body) = self.send(req).await;
         assert_eq!(status, StatusCode::OK, "{body}");
         body
@@ -391,7 +398,7 @@ async fn non_finite_pixels_are_refused_and_the_tile_is_queued_again() {
     let req = api
         .http
         .put(format!("{}/api/v1/leases/{lease_id}/pixels", api.url))
-        .body(worker::protocol::pixels_to_bytes(&pixels));
+        .body(protocol::pixels_to_bytes(&pixels));
     let (status, _, body) = api.send(req).await;
     assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
     assert!(error_of(&body).contains("non-finite"), "{body}");
@@ -423,7 +430,7 @@ async fn non_finite_pixels_are_refused_and_the_tile_is_queued_again() {
     let req = api
         .http
         .put(format!("{}/api/v1/leases/{again_id}/pixels", api.url))
-        .body(worker::protocol::pixels_to_bytes(&pixels));
+        .body(protocol::pixels_to_bytes(&pixels));
     let (status, _, body) = api.send(req).await;
     assert_eq!(status, StatusCode::BAD_REQUEST, "infinity too: {body}");
     let last = api.lease("honest-2").await;
@@ -435,7 +442,7 @@ async fn non_finite_pixels_are_refused_and_the_tile_is_queued_again() {
             api.url,
             last["lease_id"].as_u64().unwrap()
         ))
-        .body(worker::protocol::pixels_to_bytes(&pixels));
+        .body(protocol::pixels_to_bytes(&pixels));
     let (status, _, body) = api.send(req).await;
     assert_eq!(status, StatusCode::OK, "{body}");
     assert_eq!(body["tiles_done"], 1, "{body}");

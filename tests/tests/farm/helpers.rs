@@ -7,8 +7,8 @@ use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use worker::protocol::{JobInfo, JobSpec};
-use worker::Client;
+use protocol::client::Client;
+use protocol::{JobInfo, JobSpec};
 
 pub fn workspace() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -6,9 +6,10 @@ use std::time::Duration;
 use reqwest::{header, Method, RequestBuilder, Response, StatusCode};
 use serde::de::DeserializeOwned;
 
-use crate::protocol::{
+use crate::{
     ApiError, Bundle, Completion, FailureReport, JobInfo, JobSpec, Lease, LeaseRequest,
-    LeaseStatus, API_PREFIX, CONTENT_TYPE_BLOB_REF, PART_JOB, PART_SCENE,
+    LeaseStatus, TilePage, WorkerIdentity, WorkerRegistration, API_PREFIX, CONTENT_TYPE_BLOB_REF,
+    PART_JOB, PART_SCENE,
 };
 
 #[derive(Debug, thiserror::Error)]
@@ -19,6 +20,10 @@ pub enum ClientError {
     /// 409: the lease is stale or unknown (or the job no longer wants the tile). Drop the tile.
     #[error("lease no longer valid: {0}")]
     Stale(String),
+    /// 404 to a lease request: the coordinator does not know this worker id (its data dir
+    /// was replaced). Register again.
+    #[error("the coordinator does not know this worker: {0}")]
+    UnknownWorker(String),
     /// Any other error status, with the coordinator's message.
     #[error("{message} (HTTP {status})")]
     Api {
@@ -154,6 +159,15 @@ impl Client {
         Ok(())
     }
 
+    /// Registers a worker process under `name` (a label) and returns the id its lease
+    /// requests carry.
+    pub async fn register(&self, name: &str) -> Result<WorkerIdentity> {
+        let body = WorkerRegistration {
+            name: name.to_string(),
+        };
+        Self::json(self.request(Method::POST, "/workers").json(&body)).await
+    }
+
     /// Asks for a tile, waiting up to `wait_ms` on the server for one to turn up.
     pub async fn lease(&self, req: &LeaseRequest) -> Result<Option<Lease>> {
         let resp = self
@@ -162,7 +176,14 @@ impl Client {
             .json(req)
             .send()
             .await?;
-        let resp = Self::check(resp).await?;
+        let resp = match Self::check(resp).await {
+            Err(ClientError::Api {
+                status: 404,
+                message,
+                ..
+            }) => return Err(ClientError::UnknownWorker(message)),
+            other => other?,
+        };
         if resp.status() == StatusCode::NO_CONTENT {
             return Ok(None);
         }
@@ -180,7 +201,7 @@ impl Client {
         .await
     }
 
-    /// Posts a finished tile's pixels (see [`crate::protocol::pixels_to_bytes`]).
+    /// Posts a finished tile's pixels (see [`crate::pixels_to_bytes`]).
     pub async fn complete(&self, lease_id: u64, pixels: Vec<u8>) -> Result<Completion> {
         Self::json(
             self.request(Method::PUT, &format!("/leases/{lease_id}/pixels"))
@@ -270,6 +291,15 @@ impl Client {
 
     pub async fn jobs(&self) -> Result<Vec<JobInfo>> {
         Self::json(self.request(Method::GET, "/jobs")).await
+    }
+
+    /// One page of a job's tile map: `limit` tiles from index `offset`.
+    pub async fn tiles(&self, id: u64, offset: u32, limit: u32) -> Result<TilePage> {
+        Self::json(self.request(
+            Method::GET,
+            &format!("/jobs/{id}/tiles?offset={offset}&limit={limit}"),
+        ))
+        .await
     }
 
     pub async fn cancel(&self, id: u64) -> Result<JobInfo> {

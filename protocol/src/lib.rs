@@ -1,38 +1,33 @@
-//! The farm's wire types: every JSON body the coordinator and its clients exchange, and the
-//! routes with the status codes each answers. `docs/api.md` is the prose version of this file.
+//! The farm's wire protocol, shared by the coordinator, the worker and every client:
 //!
-//! It lives in the worker crate (the bottom of the dependency graph, beside the client) so
-//! that the worker compiles neither axum nor SQLite, while the coordinator, which depends on
-//! the worker for its embedded `render` command, serves exactly these types.
+//! - the JSON bodies of every route (this file);
+//! - [`routes`]: every route with the status codes it answers — the coordinator builds its
+//!   router from this table, so a route cannot exist without an entry here;
+//! - the tile pixel wire format ([`pixels_to_bytes`], [`pixels_from_bytes`]), which is also the
+//!   coordinator's tile file format;
+//! - content hashes ([`hash_hex`]) that address scenes and assets;
+//! - with the `client` feature, [`client`]: a typed HTTP client.
 //!
-//! Routes (all under [`API_PREFIX`] but `/healthz` and `/metrics`):
-//!
-//! | route | answers |
-//! | --- | --- |
-//! | `POST /jobs` (multipart: `job` JSON [`JobSpec`], `scene`, one part per asset) | 201 [`JobInfo`]; 400 [`ApiError`] bad scene, settings or path; 413 too large |
-//! | `GET /jobs` | 200 `Vec<JobInfo>`, oldest first |
-//! | `GET /jobs/{id}` | 200 [`JobInfo`]; 404 |
-//! | `DELETE /jobs/{id}` | 200 [`JobInfo`] (cancelled); 404; 409 already finished |
-//! | `POST /jobs/{id}/retry` | 200 [`JobInfo`] (failed tiles requeued); 404; 409 not failed |
-//! | `GET /jobs/{id}/image` | 200 `image/png` (partial while running); 404 |
-//! | `GET /jobs/{id}/bundle` | 200 [`Bundle`]; 404 |
-//! | `GET /jobs/{id}/tiles` | 200 `Vec<TileInfo>`, by tile index; 404 |
-//! | `GET /jobs/{id}/camera` | 200 [`JobCamera`]: where the job looks from; 404 |
-//! | `POST /jobs/{id}/resubmit` (optional [`JobSpec`]) | 201 [`JobInfo`] of a new job of the same scene; 400; 404 |
-//! | `GET /workers` | 200 `Vec<WorkerInfo>`, by name |
-//! | `GET /events` | 200 `text/event-stream`: [`EVENT_JOB`], [`EVENT_TILE`], [`EVENT_WORKERS`], [`EVENT_RESYNC`] |
-//! | `GET /blobs/{hash}` | 200 bytes; 404 |
-//! | `POST /blobs/missing` | 200 `Vec<String>`: those of the given hashes the coordinator lacks |
-//! | `POST /leases` ([`LeaseRequest`]) | 200 [`Lease`]; 204 nothing to do within `wait_ms` |
-//! | `POST /leases/{id}/heartbeat` | 200 [`LeaseStatus`]; 409 stale or unknown lease |
-//! | `PUT /leases/{id}/pixels` (f32 LE) | 200 [`Completion`]; 400 wrong size; 409 stale |
-//! | `POST /leases/{id}/failure` ([`FailureReport`]) | 200 [`JobInfo`]; 409 stale |
-//! | `DELETE /leases/{id}` | 204 handed back; 409 stale |
-//!
-//! Any route answers 401 without the right bearer token when the coordinator has one.
+//! `docs/api.md` is the prose version. The crate compiles neither axum nor SQLite, so a worker
+//! links only what it needs.
+
+#[cfg(feature = "client")]
+pub mod client;
+pub mod routes;
 
 use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
 use tracer_core::{FrameRange, RenderSettings, TileRect};
+
+/// Lower-case hex SHA-256: the content address of scene files and assets.
+pub fn hash_hex(bytes: &[u8]) -> String {
+    let digest = Sha256::digest(bytes);
+    let mut out = String::with_capacity(64);
+    for b in digest {
+        out.push_str(&format!("{b:02x}"));
+    }
+    out
+}
 
 /// Every JSON route sits under this prefix.
 pub const API_PREFIX: &str = "/api/v1";
@@ -129,7 +124,11 @@ impl JobState {
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TileFailure {
     pub tile: u32,
+    /// The worker's name (a label: two workers may share one).
     pub worker: String,
+    /// The worker's coordinator-issued id (0 for failures stored before ids existed).
+    #[serde(default)]
+    pub worker_id: u64,
     pub error: String,
 }
 
@@ -170,6 +169,21 @@ pub enum TileState {
     Failed,
     /// Not done and never will be: its job was cancelled or failed.
     Idle,
+}
+
+/// `GET /jobs/{id}/tiles` answers at most this many tiles per request.
+pub const MAX_TILE_PAGE: u32 = 4096;
+
+/// One page of a job's tile map, `GET /jobs/{id}/tiles?offset=&limit=`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TilePage {
+    /// Every tile of the job (all frames), so a reader knows when it has seen them all.
+    pub tiles_total: u32,
+    /// The index of the first tile in `tiles`.
+    pub offset: u32,
+    /// Tiles `offset`, `offset + 1`, … in index order; at most the requested `limit` and at
+    /// most [`MAX_TILE_PAGE`].
+    pub tiles: Vec<TileInfo>,
 }
 
 /// One tile of a job, as `GET /jobs/{id}/tiles` and the `tile` event report it.
@@ -222,6 +236,9 @@ pub struct WorkerLease {
 /// One worker as the coordinator knows it (since the coordinator started).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WorkerInfo {
+    /// The id the coordinator issued when the worker registered.
+    pub id: u64,
+    /// The worker's label, as it registered (not necessarily unique).
     pub name: String,
     /// The address its last lease request came from.
     pub address: Option<String>,
@@ -241,11 +258,31 @@ pub const EVENT_TILE: &str = "tile";
 pub const EVENT_WORKERS: &str = "workers";
 pub const EVENT_RESYNC: &str = "resync";
 
+/// `POST /workers`: a worker process introduces itself before asking for tiles.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WorkerRegistration {
+    /// A label for listings and logs (1 to [`MAX_WORKER_NAME`] bytes); it need not be unique.
+    pub name: String,
+}
+
+/// The longest worker name the coordinator accepts, in bytes.
+pub const MAX_WORKER_NAME: usize = 200;
+
+/// The answer to a registration: the identity every lease request carries.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WorkerIdentity {
+    /// Issued by the coordinator and never issued twice, so two processes sharing a name
+    /// are still two workers.
+    pub worker_id: u64,
+    pub name: String,
+}
+
 /// `POST /leases`: ask for a tile. Asking again while holding a lease answers the same lease.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct LeaseRequest {
-    /// Unique per worker process: leases, failures and metrics are keyed by it.
-    pub worker: String,
+    /// The id from `POST /workers`: leases, failures and metrics are keyed by it.
+    pub worker_id: u64,
     /// How long the coordinator may hold the request open waiting for work (long poll);
     /// capped by the coordinator.
     #[serde(default)]
