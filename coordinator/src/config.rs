@@ -3,6 +3,7 @@
 use std::time::Duration;
 
 use protocol::JobSpec;
+use tracer_core::scene::LoadLimits;
 
 use crate::farm::TileGrid;
 
@@ -24,6 +25,12 @@ pub struct Limits {
     /// Tiles in one job, every frame counted (`--max-job-tiles`): each costs a bit of memory
     /// and, when it runs, a lease and a file.
     pub max_job_tiles: u64,
+    /// Decoded pixels of all the textures a scene uses, read from each PNG's header before it
+    /// is decoded.
+    pub max_texture_pixels: u64,
+    /// Spheres, triangles and each distinct mesh's triangles in one scene: what its geometry
+    /// and BVHs cost in memory (tracer-core also bounds the scene file's XML elements by it).
+    pub max_scene_primitives: u64,
 }
 
 impl Default for Limits {
@@ -38,11 +45,21 @@ impl Default for Limits {
             max_tile_size: 1024,
             max_frames: 10_000,
             max_job_tiles: 1_000_000,
+            max_texture_pixels: LoadLimits::default().max_texture_pixels,
+            max_scene_primitives: LoadLimits::default().max_primitives,
         }
     }
 }
 
 impl Limits {
+    /// The scene budgets, as tracer-core's loader takes them.
+    pub fn load_limits(&self) -> LoadLimits {
+        LoadLimits {
+            max_texture_pixels: self.max_texture_pixels,
+            max_primitives: self.max_scene_primitives,
+        }
+    }
+
     /// Checks a job's tile count (frames × tiles per frame) against the budget.
     pub fn check_tiles(&self, grid: &TileGrid) -> Result<(), String> {
         let tiles = grid.total_u64();
@@ -131,6 +148,7 @@ pub struct FarmConfig {
     /// longest-silent worker that holds no lease.
     pub max_workers: usize,
     pub limits: Limits,
+    pub connections: ConnectionLimits,
 }
 
 impl Default for FarmConfig {
@@ -145,6 +163,36 @@ impl Default for FarmConfig {
             max_tile_attempts: 5,
             max_workers: 10_000,
             limits: Limits::default(),
+            connections: ConnectionLimits::default(),
+        }
+    }
+}
+
+/// How the HTTP server treats connections, so that clients that send slowly, or not at all,
+/// cannot hold the coordinator's descriptors or memory.
+#[derive(Clone, Debug)]
+pub struct ConnectionLimits {
+    /// A request's head must be complete this long after the connection opened, or after the
+    /// first byte of a later request on it arrived.
+    pub header_timeout: Duration,
+    /// A kept-alive connection that sends nothing for this long after a response is closed;
+    /// a submission's upload that pauses this long is abandoned.
+    pub idle_timeout: Duration,
+    /// Connections served at once; further ones wait in the listen backlog. The server also
+    /// keeps it to three quarters of the descriptor limit.
+    pub max_connections: usize,
+    /// Requests that read an upload or build a scene (submit, resubmit, camera) at once;
+    /// further ones wait their turn before their body is read.
+    pub max_scene_builds: usize,
+}
+
+impl Default for ConnectionLimits {
+    fn default() -> Self {
+        Self {
+            header_timeout: Duration::from_secs(10),
+            idle_timeout: Duration::from_secs(60),
+            max_connections: 4096,
+            max_scene_builds: 2,
         }
     }
 }

@@ -5,6 +5,7 @@ use std::collections::HashMap;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::body::{Body, Bytes};
 use axum::extract::rejection::QueryRejection;
@@ -22,7 +23,7 @@ use tracer_core::scene::SceneDescription;
 use tracer_core::{MemoryAssets, Scene, SceneError};
 
 use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
-use crate::farm::NewJob;
+use crate::farm::{Farm, NewJob};
 
 /// An asset part: its bytes, or a reference to content the coordinator already holds.
 enum AssetPart {
@@ -30,11 +31,24 @@ enum AssetPart {
     Blob(String),
 }
 
+/// The `coordinator serve` flag that sets a scene budget named by [`SceneError::limit`].
+fn limit_flag(limit: &str) -> &'static str {
+    match limit {
+        "max_texture_pixels" => "--max-texture-pixels",
+        "max_primitives" => "--max-scene-primitives",
+        _ => "a coordinator flag",
+    }
+}
+
 fn scene_error(e: &SceneError) -> Failure {
+    let error = match e.limit() {
+        Some(limit) => format!("{e} (set by {} on this coordinator)", limit_flag(limit)),
+        None => e.to_string(),
+    };
     Failure(
         StatusCode::BAD_REQUEST,
         ApiError {
-            error: e.to_string(),
+            error,
             file: Some(e.file.clone()),
             line: Some(e.line),
             column: Some(e.column),
@@ -64,20 +78,40 @@ fn scene_file_name(raw: Option<&str>) -> String {
         .to_string()
 }
 
+/// What the body pump saw that the multipart parser's error cannot say.
+#[derive(Default)]
+struct UploadState {
+    too_large: AtomicBool,
+    stalled: AtomicBool,
+}
+
 /// Feeds the request body to the multipart parser up to the upload limit, and keeps reading
 /// (discarding) past it, or after the handler stopped reading, up to a hard cap. A client
 /// still sending its body when the error answer goes out would otherwise see its connection
-/// reset instead of the 4xx.
-fn pump_body(body: Body, limit: usize, too_large: Arc<AtomicBool>) -> Body {
+/// reset instead of the 4xx. A body that sends nothing for `stall` is abandoned, so a client
+/// cannot hold a scene-build turn by pausing its upload.
+fn pump_body(body: Body, limit: usize, stall: Duration, state: Arc<UploadState>) -> Body {
     let hard_cap = limit.saturating_mul(2).max(limit.saturating_add(64 << 20));
     let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(8);
     tokio::spawn(async move {
         let mut stream = body.into_data_stream();
         let (mut seen, mut forwarding) = (0usize, true);
-        while let Some(Ok(chunk)) = stream.next().await {
+        loop {
+            let chunk = match tokio::time::timeout(stall, stream.next()).await {
+                Ok(Some(Ok(chunk))) => chunk,
+                Ok(_) => break,
+                Err(_) => {
+                    if forwarding {
+                        state.stalled.store(true, Ordering::SeqCst);
+                        let err = std::io::Error::other("the upload stalled");
+                        let _ = tx.send(Err(err)).await;
+                    }
+                    break;
+                }
+            };
             seen += chunk.len();
             if forwarding && seen > limit {
-                too_large.store(true, Ordering::SeqCst);
+                state.too_large.store(true, Ordering::SeqCst);
                 let err = std::io::Error::other("the upload exceeds the limit");
                 let _ = tx.send(Err(err)).await;
                 forwarding = false;
@@ -97,9 +131,12 @@ fn pump_body(body: Body, limit: usize, too_large: Arc<AtomicBool>) -> Body {
 pub async fn submit(State(app): AppState, req: Request) -> Response {
     let farm = app.farm.clone();
     let limit = farm.config().limits.max_upload_bytes;
-    let too_large = Arc::new(AtomicBool::new(false));
+    let stall = farm.config().connections.idle_timeout;
+    // The upload is read, and the scene built, in turn with the other heavy requests.
+    let _turn = app.scene_turn().await;
+    let upload = Arc::new(UploadState::default());
     let (parts, body) = req.into_parts();
-    let req = Request::from_parts(parts, pump_body(body, limit, too_large.clone()));
+    let req = Request::from_parts(parts, pump_body(body, limit, stall, upload.clone()));
     let result = match Multipart::from_request(req, &()).await {
         Ok(multipart) => submit_inner(&app, multipart).await,
         Err(rejection) => Err(Failure(
@@ -113,10 +150,18 @@ pub async fn submit(State(app): AppState, req: Request) -> Response {
             (StatusCode::CREATED, Json(info)).into_response()
         }
         Err(failure) => {
-            let failure = if too_large.load(Ordering::SeqCst) {
+            let failure = if upload.too_large.load(Ordering::SeqCst) {
                 Failure(
                     StatusCode::PAYLOAD_TOO_LARGE,
                     ApiError::new(format!("the upload exceeds the limit of {limit} bytes")),
+                )
+            } else if upload.stalled.load(Ordering::SeqCst) {
+                Failure(
+                    StatusCode::REQUEST_TIMEOUT,
+                    ApiError::new(format!(
+                        "the upload sent nothing for {}s (the idle timeout); abandoned",
+                        stall.as_secs_f64()
+                    )),
                 )
             } else {
                 failure
@@ -193,49 +238,53 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
     })?;
     let text = String::from_utf8(scene_bytes)
         .map_err(|_| Failure::bad_request(format!("{scene_file} is not UTF-8 text")))?;
-    let desc = SceneDescription::parse(&text, &scene_file).map_err(|e| scene_error(&e))?;
-
-    // Only what the scene uses becomes part of the job; everything it uses must be here.
-    let mut assets = MemoryAssets {
-        files: HashMap::new(),
-    };
-    for path in desc.referenced_assets() {
-        check_bundle_path(&path)
-            .map_err(|e| Failure::bad_request(format!("{scene_file} references {e}")))?;
-        let bytes = match parts.remove(&path) {
-            Some(AssetPart::Bytes(bytes)) => bytes,
-            Some(AssetPart::Blob(hash)) => app.farm.files().blob(&hash)?.ok_or_else(|| {
-                Failure::bad_request(format!(
-                    "asset {path} refers to content {hash} that the coordinator does not hold; \
-                     send its bytes"
-                ))
-            })?,
-            None => {
-                return Err(Failure(
-                    StatusCode::BAD_REQUEST,
-                    ApiError {
-                        error: format!(
-                            "missing asset {path}: {scene_file} references it but the \
-                             submission has no part named {path:?}"
-                        ),
-                        file: Some(path.clone()),
-                        ..ApiError::default()
-                    },
-                ))
-            }
-        };
-        assets.files.insert(path, bytes);
-    }
 
     let farm = app.farm.clone();
     blocking(move || {
-        // Load the scene as a worker would, so a broken mesh or texture is refused now
-        // rather than failing on every worker.
-        let (scene_text, scene_name) = (text, scene_file);
-        let scene = Scene::build(&desc, &scene_name, &assets).map_err(|e| scene_error(&e))?;
+        let load_limits = farm.config().limits.load_limits();
+        let desc = SceneDescription::parse_with_limits(&text, &scene_file, &load_limits)
+            .map_err(|e| scene_error(&e))?;
+        // Only what the scene uses becomes part of the job; everything it uses must be here.
+        let mut assets = MemoryAssets {
+            files: HashMap::new(),
+        };
+        for path in desc.referenced_assets() {
+            check_bundle_path(&path)
+                .map_err(|e| Failure::bad_request(format!("{scene_file} references {e}")))?;
+            let bytes = match parts.remove(&path) {
+                Some(AssetPart::Bytes(bytes)) => bytes,
+                Some(AssetPart::Blob(hash)) => farm.files().blob(&hash)?.ok_or_else(|| {
+                    Failure::bad_request(format!(
+                        "asset {path} refers to content {hash} that the coordinator does not \
+                         hold; send its bytes"
+                    ))
+                })?,
+                None => {
+                    return Err(Failure(
+                        StatusCode::BAD_REQUEST,
+                        ApiError {
+                            error: format!(
+                                "missing asset {path}: {scene_file} references it but the \
+                                 submission has no part named {path:?}"
+                            ),
+                            file: Some(path.clone()),
+                            ..ApiError::default()
+                        },
+                    ))
+                }
+            };
+            assets.files.insert(path, bytes);
+        }
+        drop(parts);
+        // Load the scene as a worker would, within the coordinator's budgets, so a broken or
+        // oversized mesh or texture is refused now rather than on every worker.
+        let scene = Scene::build_with_limits(&desc, &scene_file, &assets, &load_limits)
+            .map_err(|e| scene_error(&e))?;
         check_frames(&spec, scene.frame_count()).map_err(Failure::bad_request)?;
+        // Not needed to store the job: give their memory back before the blobs are written.
+        drop((scene, desc));
         let files = farm.files();
-        let scene_hash = files.put_blob(scene_text.as_bytes())?;
+        let scene_hash = files.put_blob(text.as_bytes())?;
         let mut bundle = Vec::new();
         for (path, bytes) in &assets.files {
             bundle.push(BundleFile {
@@ -245,16 +294,45 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
             });
         }
         bundle.sort_by(|a, b| a.path.cmp(&b.path));
-        let name = spec.name.clone().unwrap_or_else(|| scene_name.clone());
+        let name = spec.name.clone().unwrap_or_else(|| scene_file.clone());
         Ok(farm.submit(NewJob {
             name,
-            scene_file: scene_name,
+            scene_file,
             scene_hash,
             spec,
             assets: bundle,
         })?)
     })
     .await
+}
+
+/// Loads a stored job's scene from the blob store within the coordinator's current budgets.
+/// Blocking.
+fn load_stored_scene(farm: &Farm, bundle: &Bundle) -> ApiResult<Scene> {
+    let missing = |what: &str| {
+        Failure::not_found(format!(
+            "{what} of job {} is missing from the store",
+            bundle.job_id
+        ))
+    };
+    let text = farm
+        .files()
+        .blob(&bundle.scene_hash)?
+        .ok_or_else(|| missing("the scene file"))?;
+    let text = String::from_utf8_lossy(&text);
+    let mut assets = MemoryAssets::default();
+    for file in &bundle.assets {
+        let bytes = farm
+            .files()
+            .blob(&file.hash)?
+            .ok_or_else(|| missing(&format!("asset {}", file.path)))?;
+        assets.files.insert(file.path.clone(), bytes);
+    }
+    let limits = farm.config().limits.load_limits();
+    let desc = SceneDescription::parse_with_limits(&text, &bundle.scene_file, &limits)
+        .map_err(|e| scene_error(&e))?;
+    Scene::build_with_limits(&desc, &bundle.scene_file, &assets, &limits)
+        .map_err(|e| scene_error(&e))
 }
 
 pub async fn list(State(app): AppState) -> Json<Vec<JobInfo>> {
@@ -398,6 +476,7 @@ pub async fn camera(State(app): AppState, Path(id): Path<String>) -> ApiResult<J
     let farm = app.farm.clone();
     let info = farm.job(id)?;
     let bundle = farm.bundle(id)?;
+    let _turn = app.scene_turn().await;
     let camera = blocking(move || {
         let text = farm.files().blob(&bundle.scene_hash)?.ok_or_else(|| {
             Failure::not_found(format!(
@@ -405,8 +484,9 @@ pub async fn camera(State(app): AppState, Path(id): Path<String>) -> ApiResult<J
             ))
         })?;
         let text = String::from_utf8_lossy(&text);
-        let desc =
-            SceneDescription::parse(&text, &bundle.scene_file).map_err(|e| scene_error(&e))?;
+        let limits = farm.config().limits.load_limits();
+        let desc = SceneDescription::parse_with_limits(&text, &bundle.scene_file, &limits)
+            .map_err(|e| scene_error(&e))?;
         Ok(job_camera(&desc, &info.spec))
     })
     .await?;
@@ -458,31 +538,26 @@ pub async fn resubmit(
         .check(&spec)
         .map_err(Failure::bad_request)?;
     let bundle = farm.bundle(id)?;
-    // The frames asked for must exist in the scene, as for a submission.
-    let (scene_hash, scene_file) = (bundle.scene_hash.clone(), bundle.scene_file.clone());
-    let frames = {
-        let farm = farm.clone();
-        blocking(move || {
-            let text = farm.files().blob(&scene_hash)?.ok_or_else(|| {
-                Failure::not_found(format!(
-                    "the scene file of job {id} is missing from the store"
-                ))
-            })?;
-            let text = String::from_utf8_lossy(&text);
-            let desc = SceneDescription::parse(&text, &scene_file).map_err(|e| scene_error(&e))?;
-            Ok(desc.frames)
-        })
-        .await?
-    };
-    check_frames(&spec, frames).map_err(Failure::bad_request)?;
-    let info = farm.submit(NewJob {
-        name: spec.name.clone().unwrap_or(original.name),
-        scene_file: bundle.scene_file,
-        scene_hash: bundle.scene_hash,
-        spec,
-        assets: bundle.assets,
-    })?;
-    farm.metrics.jobs_submitted.fetch_add(1, Ordering::Relaxed);
+    // The scene is loaded again: the new settings may ask for frames it lacks, and the
+    // budgets may have been lowered since the original was accepted.
+    let _turn = app.scene_turn().await;
+    let info = blocking(move || {
+        let scene = load_stored_scene(&farm, &bundle)?;
+        check_frames(&spec, scene.frame_count()).map_err(Failure::bad_request)?;
+        drop(scene);
+        Ok(farm.submit(NewJob {
+            name: spec.name.clone().unwrap_or(original.name),
+            scene_file: bundle.scene_file,
+            scene_hash: bundle.scene_hash,
+            spec,
+            assets: bundle.assets,
+        })?)
+    })
+    .await?;
+    app.farm
+        .metrics
+        .jobs_submitted
+        .fetch_add(1, Ordering::Relaxed);
     Ok((StatusCode::CREATED, Json(info)).into_response())
 }
 

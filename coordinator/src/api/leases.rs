@@ -12,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
 
-use super::{blocking, parse_id, parse_json, ApiResult, AppState};
+use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
 use crate::farm::FarmError;
 
 /// Counts 409s for the metrics on the way out.
@@ -81,6 +81,39 @@ pub async fn heartbeat(
     Ok(Json(counted(&app, app.farm.heartbeat(id))?))
 }
 
+/// The longest failure message stored: it is repeated in every job listing and event.
+pub const MAX_FAILURE_MESSAGE: usize = 4096;
+
+/// Cuts `message` to at most `max` bytes on a character boundary, saying how long it was.
+fn truncate_message(message: &mut String, max: usize) {
+    if message.len() <= max {
+        return;
+    }
+    let total = message.len();
+    let note = format!("… ({total} bytes, truncated)");
+    let mut end = max.saturating_sub(note.len());
+    while !message.is_char_boundary(end) {
+        end -= 1;
+    }
+    message.truncate(end);
+    message.push_str(&note);
+}
+
+/// The index of the first value in `pixels` (f32 little-endian) that is NaN or infinite.
+fn first_non_finite(pixels: &[u8]) -> Option<usize> {
+    pixels
+        .chunks_exact(4)
+        .position(|c| !f32::from_le_bytes([c[0], c[1], c[2], c[3]]).is_finite())
+}
+
+/// What a completion's blocking part decided.
+enum Outcome {
+    Stored(Completion),
+    /// The pixels held a non-finite value: the lease ended as a failure and the tile went
+    /// back to the queue.
+    NonFinite(String),
+}
+
 pub async fn complete(
     State(app): AppState,
     Path(id): Path<String>,
@@ -88,8 +121,31 @@ pub async fn complete(
 ) -> ApiResult<Json<Completion>> {
     let id = parse_id("lease", &id)?;
     let farm = app.farm.clone();
-    let result = blocking(move || Ok(farm.complete(id, &body))).await?;
-    Ok(Json(counted(&app, result)?))
+    let result = blocking(move || {
+        Ok(match first_non_finite(&body) {
+            // Recorded as the worker's failure rather than handed back: a tile that renders
+            // NaN on every worker then fails its job after the usual attempts instead of
+            // circulating for ever.
+            Some(at) => {
+                let error = format!(
+                    "the tile's pixels hold a non-finite value (NaN or infinity) at value {at}"
+                );
+                let report = FailureReport {
+                    error: error.clone(),
+                    scene: false,
+                };
+                farm.fail(id, &report).map(|_| Outcome::NonFinite(error))
+            }
+            None => farm.complete(id, &body).map(Outcome::Stored),
+        })
+    })
+    .await?;
+    match counted(&app, result)? {
+        Outcome::Stored(done) => Ok(Json(done)),
+        Outcome::NonFinite(error) => Err(Failure::bad_request(format!(
+            "{error}; refused, and the tile is queued again"
+        ))),
+    }
 }
 
 pub async fn fail(
@@ -98,7 +154,8 @@ pub async fn fail(
     body: Bytes,
 ) -> ApiResult<Json<JobInfo>> {
     let id = parse_id("lease", &id)?;
-    let report: FailureReport = parse_json(&body)?;
+    let mut report: FailureReport = parse_json(&body)?;
+    truncate_message(&mut report.error, MAX_FAILURE_MESSAGE);
     Ok(Json(counted(&app, app.farm.fail(id, &report))?))
 }
 
@@ -106,4 +163,31 @@ pub async fn hand_back(State(app): AppState, Path(id): Path<String>) -> ApiResul
     let id = parse_id("lease", &id)?;
     counted(&app, app.farm.hand_back(id))?;
     Ok(StatusCode::NO_CONTENT)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn long_messages_are_cut_on_a_character_boundary() {
+        let mut short = "a short message".to_string();
+        truncate_message(&mut short, 64);
+        assert_eq!(short, "a short message");
+        let mut long = "é".repeat(5000);
+        truncate_message(&mut long, MAX_FAILURE_MESSAGE);
+        assert!(long.len() <= MAX_FAILURE_MESSAGE, "{}", long.len());
+        assert!(long.ends_with("(10000 bytes, truncated)"), "{long}");
+        assert!(long.starts_with("éé"));
+    }
+
+    #[test]
+    fn non_finite_pixels_are_found() {
+        let mut pixels = protocol::pixels_to_bytes(&[0.0, 1.5, 1e30, -2.0]);
+        assert_eq!(first_non_finite(&pixels), None);
+        pixels.extend_from_slice(&f32::NAN.to_le_bytes());
+        assert_eq!(first_non_finite(&pixels), Some(4));
+        let inf = protocol::pixels_to_bytes(&[0.0, f32::INFINITY]);
+        assert_eq!(first_non_finite(&inf), Some(1));
+    }
 }

@@ -22,6 +22,7 @@ use protocol::routes::{RouteId, ROUTES};
 use protocol::{ApiError, API_PREFIX};
 use sha2::{Digest, Sha256};
 use subtle::ConstantTimeEq;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use crate::farm::{Farm, FarmError};
 
@@ -31,6 +32,20 @@ pub struct App {
     /// SHA-256 of the bearer token, when one is required. Comparing digests in constant time
     /// also hides the token's length.
     token_digest: Option<[u8; 32]>,
+    /// Turns at reading an upload or building a scene: each can take the memory of a whole
+    /// scene, so only a few run at once and the rest wait (`ConnectionLimits::max_scene_builds`).
+    scene_builds: Arc<Semaphore>,
+}
+
+impl App {
+    /// Waits for a turn at scene work; the turn ends when the permit is dropped.
+    pub async fn scene_turn(&self) -> OwnedSemaphorePermit {
+        self.scene_builds
+            .clone()
+            .acquire_owned()
+            .await
+            .expect("the semaphore is never closed")
+    }
 }
 
 pub type AppState = State<Arc<App>>;
@@ -159,6 +174,46 @@ async fn not_found() -> Failure {
     Failure::not_found("no such route; see docs/api.md")
 }
 
+/// The longest error text of a non-JSON answer that is carried into the JSON one.
+const MAX_REWRAPPED_ERROR: usize = 4096;
+
+/// Makes every error answer a JSON [`ApiError`], including those that axum makes itself (405
+/// with an empty body, 413 and 400 from body extractors in plain text). Handlers' own errors
+/// are JSON already and pass untouched.
+async fn json_errors(req: Request, next: Next) -> Response {
+    let (method, path) = (req.method().clone(), req.uri().path().to_string());
+    let response = next.run(req).await;
+    let status = response.status();
+    let is_json = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return response;
+    }
+    let (mut parts, body) = response.into_parts();
+    let text = axum::body::to_bytes(body, MAX_REWRAPPED_ERROR)
+        .await
+        .map(|b| String::from_utf8_lossy(&b).trim().to_string())
+        .unwrap_or_default();
+    // (axum adds the `Allow` header after this layer has run.)
+    let error = if status == StatusCode::METHOD_NOT_ALLOWED {
+        format!("{method} is not allowed on {path}; its Allow header lists the methods it takes")
+    } else if text.is_empty() {
+        status.canonical_reason().unwrap_or("error").to_string()
+    } else {
+        text
+    };
+    parts.headers.remove(header::CONTENT_LENGTH);
+    parts.headers.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/json"),
+    );
+    let body = serde_json::to_vec(&ApiError::new(error)).unwrap_or_default();
+    Response::from_parts(parts, axum::body::Body::from(body))
+}
+
 /// The handler of each route in the table; the match is exhaustive, so a route added to the
 /// table without a handler does not compile.
 fn handler(id: RouteId) -> MethodRouter<Arc<App>> {
@@ -195,9 +250,11 @@ fn handler(id: RouteId) -> MethodRouter<Arc<App>> {
 /// other route needs it when one is set.
 pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
     let limit = farm.config().limits.max_upload_bytes;
+    let scene_builds = farm.config().connections.max_scene_builds.max(1);
     let app = Arc::new(App {
         farm,
         token_digest: token.map(|t| Sha256::digest(t.as_bytes()).into()),
+        scene_builds: Arc::new(Semaphore::new(scene_builds)),
     });
     let (mut api, mut guarded, mut open) = (Router::new(), Router::new(), Router::new());
     for route in ROUTES {
@@ -217,6 +274,7 @@ pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
         .merge(guarded)
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(limit))
+        .layer(middleware::from_fn(json_errors))
         .with_state(app)
 }
 

@@ -10,7 +10,7 @@ use std::time::Duration;
 use clap::Args;
 
 use crate::clock::SystemClock;
-use crate::config::{FarmConfig, Limits};
+use crate::config::{ConnectionLimits, FarmConfig, Limits};
 use crate::farm::Farm;
 
 #[derive(Args, Debug)]
@@ -57,6 +57,30 @@ pub struct ServeArgs {
     /// Most worker identities kept; registering beyond it forgets the longest-silent idle one.
     #[arg(long, default_value_t = FarmConfig::default().max_workers)]
     pub max_workers: usize,
+    /// Decoded pixels of all a scene's textures together (each PNG's header is read before
+    /// it is decoded).
+    #[arg(long, default_value_t = Limits::default().max_texture_pixels)]
+    pub max_texture_pixels: u64,
+    /// Primitives in one scene: spheres, triangles, and each distinct mesh's triangles (also
+    /// bounds the XML elements a scene file may hold).
+    #[arg(long, default_value_t = Limits::default().max_scene_primitives)]
+    pub max_scene_primitives: u64,
+    /// Seconds a client has to send a complete request head, from connecting or from the
+    /// first byte of a later request; slower connections are closed.
+    #[arg(long, default_value_t = ConnectionLimits::default().header_timeout.as_secs_f64())]
+    pub header_timeout: f64,
+    /// Seconds a kept-alive connection may sit idle between requests before it is closed;
+    /// also the longest pause in a submission's upload (then 408).
+    #[arg(long, default_value_t = ConnectionLimits::default().idle_timeout.as_secs_f64())]
+    pub idle_timeout: f64,
+    /// Connections served at once (kept below three quarters of the descriptor limit);
+    /// further clients wait to be accepted.
+    #[arg(long, default_value_t = ConnectionLimits::default().max_connections)]
+    pub max_connections: usize,
+    /// Submissions, resubmits and camera reads that may load a scene at once; further ones
+    /// wait their turn before their upload is read.
+    #[arg(long, default_value_t = ConnectionLimits::default().max_scene_builds)]
+    pub max_scene_builds: usize,
 }
 
 fn secs(v: f64, what: &str) -> Result<Duration, String> {
@@ -64,6 +88,14 @@ fn secs(v: f64, what: &str) -> Result<Duration, String> {
         Ok(Duration::from_secs_f64(v))
     } else {
         Err(format!("--{what} must be a positive number of seconds"))
+    }
+}
+
+fn positive(v: usize, what: &str) -> Result<usize, String> {
+    if v > 0 {
+        Ok(v)
+    } else {
+        Err(format!("--{what} must be at least 1"))
     }
 }
 
@@ -80,9 +112,17 @@ impl ServeArgs {
                 max_spp: self.max_spp,
                 max_depth: self.max_depth,
                 max_job_tiles: self.max_job_tiles,
+                max_texture_pixels: self.max_texture_pixels,
+                max_scene_primitives: self.max_scene_primitives,
                 ..Limits::default()
             },
             max_workers: self.max_workers.max(1),
+            connections: ConnectionLimits {
+                header_timeout: secs(self.header_timeout, "header-timeout")?,
+                idle_timeout: secs(self.idle_timeout, "idle-timeout")?,
+                max_connections: positive(self.max_connections, "max-connections")?,
+                max_scene_builds: positive(self.max_scene_builds, "max-scene-builds")?,
+            },
             ..FarmConfig::default()
         };
         if config.heartbeat * 2 > config.lease_timeout {
@@ -128,6 +168,8 @@ pub fn run(args: ServeArgs) -> ExitCode {
         Ok(c) => c,
         Err(e) => return fail(e),
     };
+    // First: the connection cap is kept below the limit this leaves.
+    let descriptors = crate::server::raise_descriptor_limit();
     let runtime = match super::runtime() {
         Ok(rt) => rt,
         Err(e) => return fail(e),
@@ -173,6 +215,9 @@ pub fn run(args: ServeArgs) -> ExitCode {
         .ok();
         let _ = out.flush();
         drop(out);
+        if let Some(n) = descriptors {
+            tracing::debug!("descriptor limit {n}");
+        }
         tracing::info!(
             "coordinator {} on http://{local}, data in {}{}",
             env!("CARGO_PKG_VERSION"),

@@ -10,3 +10,4 @@ mod dashboard_api;
 mod deploy;
 mod e2e;
 mod faults;
+mod hardening;
