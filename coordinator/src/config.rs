@@ -45,8 +45,11 @@ impl Default for Limits {
             max_tile_size: 1024,
             max_frames: 10_000,
             max_job_tiles: 1_000_000,
-            max_texture_pixels: LoadLimits::default().max_texture_pixels,
-            max_scene_primitives: LoadLimits::default().max_primitives,
+            // Tighter than tracer-core's own defaults: a farm loads up to `--max-scene-builds`
+            // scenes at once for strangers, and the worst case costs ~6 B per texture pixel and
+            // ~2 KiB per XML sphere (docs/farm.md, "Memory under hostile submissions").
+            max_texture_pixels: 64_000_000,
+            max_scene_primitives: 1_000_000,
         }
     }
 }

@@ -11,8 +11,9 @@ use tokio::task::JoinHandle;
 use worker::{SceneCache, Shutdown, Worker, WorkerConfig, WorkerStats};
 
 use crate::clock::SystemClock;
-use crate::config::FarmConfig;
+use crate::config::{FarmConfig, Limits};
 use crate::farm::Farm;
+use tracer_core::LoadLimits;
 
 /// A running in-process farm. Call [`EmbeddedFarm::shutdown`] to stop it cleanly.
 pub struct EmbeddedFarm {
@@ -59,10 +60,18 @@ impl EmbeddedFarm {
                 (temp.path().to_path_buf(), Some(temp))
             }
         };
-        // Every core is already busy with a worker: straggler copies would only compete.
+        // Every core is already busy with a worker: straggler copies would only compete. The
+        // scene is the user's own, on their own machine: it loads whatever `tracer render`
+        // loads, so the scene budgets that protect a shared coordinator are lifted.
+        let defaults = FarmConfig::default();
         let config = FarmConfig {
             stragglers: false,
-            ..FarmConfig::default()
+            limits: Limits {
+                max_texture_pixels: LoadLimits::UNLIMITED.max_texture_pixels,
+                max_scene_primitives: LoadLimits::UNLIMITED.max_primitives,
+                ..defaults.limits.clone()
+            },
+            ..defaults
         };
         let farm =
             Farm::open(&data_dir, config, Arc::new(SystemClock)).map_err(|e| e.to_string())?;
