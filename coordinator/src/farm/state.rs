@@ -83,6 +83,18 @@ impl State {
             .ok_or_else(|| FarmError::NotFound(format!("no job {id}")))
     }
 
+    /// The job, if it can still change state; a finished one is a conflict.
+    fn active_job(&self, id: u64) -> Result<&Job> {
+        let job = self.job(id)?;
+        if !job.is_active() {
+            return Err(FarmError::Conflict(format!(
+                "job {id} is already {}",
+                job.state.as_str()
+            )));
+        }
+        Ok(job)
+    }
+
     fn job_mut(&mut self, id: u64) -> Result<&mut Job> {
         self.jobs
             .get_mut(&id)
@@ -358,13 +370,7 @@ impl State {
         now: u64,
         why: &'static str,
     ) -> Result<()> {
-        let job = self.job(job_id)?;
-        if !job.is_active() {
-            return Err(FarmError::Conflict(format!(
-                "job {job_id} is already {}",
-                job.state.as_str()
-            )));
-        }
+        let job = self.active_job(job_id)?;
         let row = JobRow {
             state,
             error,
@@ -378,13 +384,7 @@ impl State {
 
     /// Done: the job's image is written.
     pub fn mark_done(&mut self, job_id: u64, now: u64) -> Result<()> {
-        let job = self.job(job_id)?;
-        if !job.is_active() {
-            return Err(FarmError::Conflict(format!(
-                "job {job_id} is already {}",
-                job.state.as_str()
-            )));
-        }
+        let job = self.active_job(job_id)?;
         let row = JobRow {
             state: JobState::Done,
             error: None,
