@@ -316,6 +316,20 @@ impl Client {
         self.bytes(&format!("/jobs/{id}/image?frame={frame}")).await
     }
 
+    /// One frame of the job (its first when `frame` is None) in `format`: PNG, or the
+    /// linear f32 pixels as EXR or PFM; final or partial like [`Client::image`].
+    pub async fn image_in(
+        &self,
+        id: u64,
+        frame: Option<u32>,
+        format: tracer_core::ImageFormat,
+    ) -> Result<Vec<u8>> {
+        let frame = frame.map(|f| format!("&frame={f}")).unwrap_or_default();
+        let format = format.extension();
+        self.bytes(&format!("/jobs/{id}/image?format={format}{frame}"))
+            .await
+    }
+
     async fn bytes(&self, path: &str) -> Result<Vec<u8>> {
         let resp = self.request(Method::GET, path).send().await?;
         Ok(Self::check(resp).await?.bytes().await?.to_vec())

@@ -17,7 +17,7 @@ pub mod routes;
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use tracer_core::{FrameRange, RenderSettings, TileRect};
+use tracer_core::{FrameRange, ImageFormat, RenderSettings, TileRect};
 
 /// Lower-case hex SHA-256: the content address of scene files and assets.
 pub fn hash_hex(bytes: &[u8]) -> String {
@@ -363,6 +363,16 @@ impl ApiError {
             error: error.into(),
             ..Self::default()
         }
+    }
+}
+
+/// The `Content-Type` of a job image served as `format` (`GET /jobs/{id}/image?format=`).
+/// EXR's is the one OpenEXR registers informally; PFM has none, so it is named likewise.
+pub fn image_media_type(format: ImageFormat) -> &'static str {
+    match format {
+        ImageFormat::Png => "image/png",
+        ImageFormat::Exr => "image/x-exr",
+        ImageFormat::Pfm => "image/x-portable-floatmap",
     }
 }
 

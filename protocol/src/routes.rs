@@ -103,7 +103,8 @@ pub const ROUTES: &[Route] = &[
         RouteId::JobImage,
         "GET",
         "/jobs/{id}/image",
-        "?frame=N. 200 image/png (partial while running); 404",
+        "?frame=N&format=png|exr|pfm. 200 image/png, image/x-exr or image/x-portable-floatmap \
+         (partial while running); 400 unknown format; 404",
     ),
     api(
         RouteId::JobFramesTar,

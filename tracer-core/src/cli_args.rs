@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 
+use crate::film::ImageFormat;
 use crate::scene::{FsAssets, Scene, SceneDescription, SceneError};
 use crate::settings::{parse_vec3, CameraOverride, CausticsSettings, FrameRange, RenderSettings};
 use crate::texture::TextureFilter;
@@ -110,7 +111,8 @@ impl RenderArgs {
 #[derive(Args, Clone, Debug, PartialEq)]
 #[group(id = "output_flags")]
 pub struct OutputArgs {
-    /// Output PNG [default: the scene's name with .png, in the current folder].
+    /// Output image: .png (8-bit, the course's quantisation), .exr or .pfm (linear f32)
+    /// [default: the scene's name with .png, in the current folder].
     #[arg(short, long)]
     pub output: Option<PathBuf>,
     /// No progress bar.
@@ -121,13 +123,13 @@ pub struct OutputArgs {
 /// An output the command lines cannot write.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum OutputError {
-    #[error("cannot write {0}: only PNG output is supported (name it *.png)")]
+    #[error("cannot write {0}: the output must be a .png, .exr or .pfm file")]
     Unsupported(PathBuf),
 }
 
 impl OutputArgs {
     /// The output for `scene`: `-o` as given, or the scene's name with `.png`; refused
-    /// unless it names a PNG.
+    /// unless its extension names a format [`check_output`] accepts.
     pub fn path_for(&self, scene: &Path) -> Result<PathBuf, OutputError> {
         let path = self.output.clone().unwrap_or_else(|| default_output(scene));
         check_output(&path)?;
@@ -144,13 +146,11 @@ pub fn default_output(scene: &Path) -> PathBuf {
     PathBuf::from(format!("{stem}.png"))
 }
 
-/// Refuses an output name whose extension is not `.png` (in any case): the image is always
-/// encoded as PNG, and a `.jpg` full of PNG bytes would only mislead.
-pub fn check_output(path: &Path) -> Result<(), OutputError> {
-    match path.extension() {
-        Some(ext) if ext.eq_ignore_ascii_case("png") => Ok(()),
-        _ => Err(OutputError::Unsupported(path.to_path_buf())),
-    }
+/// The format an output name's extension (in any case) asks for: `.png`, `.exr` or `.pfm`.
+/// Anything else is refused rather than written as PNG: a `.jpg` full of PNG bytes would
+/// only mislead.
+pub fn check_output(path: &Path) -> Result<ImageFormat, OutputError> {
+    ImageFormat::from_path(path).ok_or_else(|| OutputError::Unsupported(path.to_path_buf()))
 }
 
 /// A scene file that cannot be loaded.
@@ -240,12 +240,15 @@ mod tests {
     }
 
     #[test]
-    fn only_png_outputs_are_accepted() {
-        assert!(check_output(Path::new("x.png")).is_ok());
-        assert!(check_output(Path::new("X.PNG")).is_ok());
+    fn only_supported_outputs_are_accepted() {
+        assert_eq!(check_output(Path::new("x.png")), Ok(ImageFormat::Png));
+        assert_eq!(check_output(Path::new("X.PNG")), Ok(ImageFormat::Png));
+        assert_eq!(check_output(Path::new("out.exr")), Ok(ImageFormat::Exr));
+        assert_eq!(check_output(Path::new("out.Pfm")), Ok(ImageFormat::Pfm));
         let err = check_output(Path::new("x.jpg")).unwrap_err();
-        assert!(err.to_string().contains("only PNG"), "{err}");
+        assert!(err.to_string().contains(".png, .exr or .pfm"), "{err}");
         assert!(check_output(Path::new("x")).is_err());
+        assert!(check_output(Path::new("x.exr.gz")).is_err());
     }
 
     #[test]

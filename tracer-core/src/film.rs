@@ -1,6 +1,6 @@
 //! Where rendered pixels are written: linear f32 RGB images (whole frames and tiles), tiles
 //! assembled into a frame ([`assemble`], the one path the tracer and the farm share), and the
-//! 8-bit PNG encoding.
+//! file formats: 8-bit PNG with the course's quantisation, linear f32 OpenEXR and PFM.
 
 use std::io::Cursor;
 use std::path::Path;
@@ -31,6 +31,40 @@ pub enum ImageError {
     },
     #[error("cannot decode the image: {0}")]
     Decode(image::ImageError),
+}
+
+/// The file formats an [`Image`] is written in, named by their usual extension (lower case
+/// in `serde`, so `?format=exr` parses to [`ImageFormat::Exr`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageFormat {
+    /// 8-bit RGB with the course's quantisation (clamp, ×255, truncate).
+    #[default]
+    Png,
+    /// OpenEXR: the linear f32 RGB pixels as rendered, losslessly compressed.
+    Exr,
+    /// Portable float map: the linear f32 RGB pixels, uncompressed.
+    Pfm,
+}
+
+impl ImageFormat {
+    pub const ALL: [ImageFormat; 3] = [ImageFormat::Png, ImageFormat::Exr, ImageFormat::Pfm];
+
+    pub fn extension(self) -> &'static str {
+        match self {
+            ImageFormat::Png => "png",
+            ImageFormat::Exr => "exr",
+            ImageFormat::Pfm => "pfm",
+        }
+    }
+
+    /// The format a file name's extension (in any case) names, if one is supported.
+    pub fn from_path(path: &Path) -> Option<ImageFormat> {
+        let ext = path.extension()?;
+        Self::ALL
+            .into_iter()
+            .find(|f| ext.eq_ignore_ascii_case(f.extension()))
+    }
 }
 
 /// The `width`×`height` image made of `tiles` (each placed at its rectangle; pixels no tile
@@ -161,6 +195,66 @@ impl Image {
         std::fs::write(path, self.to_png())
     }
 
+    /// Encodes as an OpenEXR file of f32 R, G, B channels holding the pixels bit for bit
+    /// (ZIP-compressed scan lines, top row first). Single-threaded, so equal images give
+    /// equal bytes. Rendered images are at least 1×1 (the settings refuse less); OpenEXR has
+    /// no empty image, so encoding a 0-pixel one panics.
+    pub fn to_exr(&self) -> Vec<u8> {
+        use exr::prelude::{Encoding, Layer, LayerAttributes, SpecificChannels, WritableImage};
+        let channels = SpecificChannels::rgb(|pos: exr::math::Vec2<usize>| {
+            let [r, g, b] = self.pixel(pos.x() as u32, pos.y() as u32);
+            (r, g, b)
+        });
+        let layer = Layer::new(
+            (self.width as usize, self.height as usize),
+            LayerAttributes::default(),
+            Encoding::SMALL_LOSSLESS,
+            channels,
+        );
+        let mut out = Cursor::new(Vec::new());
+        exr::prelude::Image::from_layer(layer)
+            .write()
+            .non_parallel()
+            .to_buffered(&mut out)
+            .expect("encoding an EXR into memory cannot fail");
+        out.into_inner()
+    }
+
+    /// Encodes as a little-endian colour PFM (`PF`, scale -1), whose rows run bottom to top.
+    pub fn to_pfm(&self) -> Vec<u8> {
+        let header = format!("PF\n{} {}\n-1.0\n", self.width, self.height);
+        let mut out = Vec::with_capacity(header.len() + 4 * self.pixels.len());
+        out.extend_from_slice(header.as_bytes());
+        let row_len = 3 * self.width as usize;
+        if row_len > 0 {
+            for row in self.pixels.chunks_exact(row_len).rev() {
+                out.extend(row.iter().flat_map(|v| v.to_le_bytes()));
+            }
+        }
+        out
+    }
+
+    /// Writes the image in the format `path`'s extension names (see [`ImageFormat::from_path`]);
+    /// an unsupported extension is an `InvalidInput` error, not a PNG under a wrong name.
+    pub fn save(&self, path: &Path) -> std::io::Result<()> {
+        let format = ImageFormat::from_path(path).ok_or_else(|| {
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "the name must end in .png, .exr or .pfm",
+            )
+        })?;
+        std::fs::write(path, self.encode(format))
+    }
+
+    /// The image's bytes in `format`.
+    pub fn encode(&self, format: ImageFormat) -> Vec<u8> {
+        match format {
+            ImageFormat::Png => self.to_png(),
+            ImageFormat::Exr => self.to_exr(),
+            ImageFormat::Pfm => self.to_pfm(),
+        }
+    }
+
     /// Decodes an 8-bit image (PNG) into linear floats value/255, as the course's loader does.
     pub fn from_png_bytes(bytes: &[u8]) -> Result<Image, ImageError> {
         let decoded = image::load_from_memory(bytes).map_err(ImageError::Decode)?;
@@ -248,6 +342,85 @@ mod tests {
         assert!(Image::new(3, 2)
             .try_insert(huge, &Image::new(2, 1))
             .is_err());
+    }
+
+    /// Values a quantised format would lose: negative, above one, tiny, NaN, infinite.
+    fn linear_test_image() -> Image {
+        let mut img = Image::new(5, 3);
+        let specials = [-0.5, 1e-30, 7.25, f32::INFINITY, f32::NAN, 0.1, 1.0 / 3.0];
+        for (i, p) in img.pixels.iter_mut().enumerate() {
+            *p = specials[i % specials.len()] * (1.0 + i as f32 / 64.0);
+        }
+        img
+    }
+
+    fn bits(pixels: &[f32]) -> Vec<u32> {
+        pixels.iter().map(|v| v.to_bits()).collect()
+    }
+
+    #[test]
+    fn exr_round_trip_keeps_every_bit() {
+        use exr::prelude::{ReadChannels, ReadLayers};
+        let img = linear_test_image();
+        let bytes = img.to_exr();
+        assert_eq!(bytes, img.to_exr(), "encoding is deterministic");
+        let read = exr::prelude::read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .rgb_channels(
+                |size, _| Image::new(size.width() as u32, size.height() as u32),
+                |back: &mut Image, pos, (r, g, b): (f32, f32, f32)| {
+                    let i = 3 * (pos.y() * back.width as usize + pos.x());
+                    back.pixels[i..i + 3].copy_from_slice(&[r, g, b]);
+                },
+            )
+            .first_valid_layer()
+            .all_attributes()
+            .from_buffered(Cursor::new(bytes))
+            .unwrap();
+        let back = read.layer_data.channel_data.pixels;
+        assert_eq!((back.width, back.height), (img.width, img.height));
+        assert_eq!(bits(&back.pixels), bits(&img.pixels));
+    }
+
+    #[test]
+    fn pfm_round_trip_keeps_every_bit() {
+        let img = linear_test_image();
+        let bytes = img.to_pfm();
+        let header = b"PF\n5 3\n-1.0\n";
+        assert_eq!(&bytes[..header.len()], header);
+        let floats: Vec<f32> = bytes[header.len()..]
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+            .collect();
+        // PFM stores the bottom row first.
+        let top_first: Vec<f32> = floats.chunks_exact(15).rev().flatten().copied().collect();
+        assert_eq!(bits(&top_first), bits(&img.pixels));
+        assert_eq!(Image::new(0, 0).to_pfm(), b"PF\n0 0\n-1.0\n");
+    }
+
+    #[test]
+    fn formats_are_named_by_extension() {
+        assert_eq!(
+            ImageFormat::from_path(Path::new("a/x.EXR")),
+            Some(ImageFormat::Exr)
+        );
+        assert_eq!(
+            ImageFormat::from_path(Path::new("x.pfm")),
+            Some(ImageFormat::Pfm)
+        );
+        assert_eq!(
+            ImageFormat::from_path(Path::new("x.png")),
+            Some(ImageFormat::Png)
+        );
+        assert_eq!(ImageFormat::from_path(Path::new("x.jpg")), None);
+        assert_eq!(ImageFormat::from_path(Path::new("exr")), None);
+        let img = linear_test_image();
+        for format in ImageFormat::ALL {
+            let encoded = img.encode(format);
+            assert!(!encoded.is_empty());
+        }
+        assert_eq!(img.encode(ImageFormat::Png), img.to_png());
     }
 
     #[test]

@@ -39,7 +39,7 @@ pub mod shade;
 pub mod texture;
 pub mod world;
 
-pub use film::Image;
+pub use film::{Image, ImageFormat};
 pub use render::{RenderError, Renderer};
 pub use scene::{AssetSource, FsAssets, LoadLimits, MemoryAssets, Scene, SceneError};
 pub use settings::{

@@ -20,7 +20,7 @@ use protocol::{
 };
 use serde::Deserialize;
 use tracer_core::scene::SceneDescription;
-use tracer_core::{MemoryAssets, Scene, SceneError};
+use tracer_core::{ImageFormat, MemoryAssets, Scene, SceneError};
 
 use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
 use crate::farm::{Farm, NewJob};
@@ -371,6 +371,9 @@ fn check_frames(spec: &JobSpec, frame_count: u32) -> Result<(), String> {
 #[serde(deny_unknown_fields)]
 pub struct ImageQuery {
     frame: Option<u32>,
+    /// `png` (default), `exr` or `pfm`; anything else is a 400.
+    #[serde(default)]
+    format: ImageFormat,
 }
 
 pub async fn image(
@@ -381,8 +384,13 @@ pub async fn image(
     let id = parse_id("job", &id)?;
     let Query(query) = query.map_err(|e| Failure::bad_request(e.body_text()))?;
     let farm = app.farm.clone();
-    let png = blocking(move || Ok(farm.image(id, query.frame)?)).await?;
-    Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
+    let format = query.format;
+    let bytes = blocking(move || Ok(farm.image_in(id, query.frame, format)?)).await?;
+    Ok((
+        [(header::CONTENT_TYPE, protocol::image_media_type(format))],
+        bytes,
+    )
+        .into_response())
 }
 
 /// Every frame of a finished job as a tar of numbered PNGs (`<name>_0003.png`).

@@ -141,34 +141,39 @@ fn runtime() -> Result<tokio::runtime::Runtime, String> {
         .map_err(|e| format!("cannot start the async runtime: {e}"))
 }
 
-fn write_png(path: &Path, png: &[u8]) -> Result<(), String> {
+fn write_image(path: &Path, bytes: &[u8]) -> Result<(), String> {
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent)
             .map_err(|e| format!("creating {}: {e}", parent.display()))?;
     }
-    std::fs::write(path, png).map_err(|e| format!("writing {}: {e}", path.display()))
+    std::fs::write(path, bytes).map_err(|e| format!("writing {}: {e}", path.display()))
 }
 
-/// Downloads a finished job's image to `output`, or each frame of a frame-range job to
-/// `output` numbered (out.png → out_0003.png). Returns the files written.
+/// Downloads a finished job's image to `output` in the format its extension names (PNG, EXR
+/// or PFM), or each frame of a frame-range job to `output` numbered (out.exr →
+/// out_0003.exr). Returns the files written.
 async fn download(
     client: &protocol::client::Client,
     job: &protocol::JobInfo,
     output: &Path,
 ) -> Result<Vec<PathBuf>, String> {
+    let format = tracer_core::cli_args::check_output(output).map_err(|e| e.to_string())?;
     let Some(range) = job.spec.frames else {
-        let png = client.image(job.id).await.map_err(|e| e.to_string())?;
-        write_png(output, &png)?;
+        let bytes = client
+            .image_in(job.id, None, format)
+            .await
+            .map_err(|e| e.to_string())?;
+        write_image(output, &bytes)?;
         return Ok(vec![output.to_path_buf()]);
     };
     let mut written = Vec::new();
     for frame in range.frames() {
-        let png = client
-            .frame_image(job.id, frame)
+        let bytes = client
+            .image_in(job.id, Some(frame), format)
             .await
             .map_err(|e| e.to_string())?;
         let path = tracer_core::settings::numbered_path(output, frame);
-        write_png(&path, &png)?;
+        write_image(&path, &bytes)?;
         written.push(path);
     }
     Ok(written)
@@ -278,6 +283,9 @@ mod tests {
         };
         assert!(args.output.quiet);
         let refused = args.output.path_for(&args.scene).unwrap_err();
-        assert!(refused.to_string().contains("only PNG"), "{refused}");
+        assert!(
+            refused.to_string().contains(".png, .exr or .pfm"),
+            "{refused}"
+        );
     }
 }

@@ -1,7 +1,10 @@
-//! Turning finished tiles into PNGs: the final image of each frame (started by the state
-//! machine when a job's last tile lands, on a thread of its own) and partial previews.
+//! Turning finished tiles into images: the final image of each frame (started by the state
+//! machine when a job's last tile lands, on a thread of its own) and partial previews. A
+//! finished frame is stored as its PNG and its linear f32 pixels, so EXR and PFM can be
+//! encoded on request after the tiles are gone.
 
 use protocol::JobState;
+use tracer_core::{Image, ImageFormat};
 
 use super::{Farm, FarmError, FarmEvent, Result};
 
@@ -105,30 +108,42 @@ impl Farm {
             Some(frames) => {
                 let mut first = None;
                 for &frame in frames {
-                    let png = self
+                    let image = self
                         .files
-                        .assemble(job_id, width, height, &tiles_of(frame))?
-                        .to_png();
-                    self.files.put_frame_image(job_id, frame, &png)?;
-                    first.get_or_insert(png);
+                        .assemble(job_id, width, height, &tiles_of(frame))?;
+                    let png = image.to_png();
+                    self.files.put_frame_image(job_id, frame, &png, &image)?;
+                    first.get_or_insert((png, image));
                 }
-                first.unwrap_or_default()
+                first.unwrap_or_else(|| (Vec::new(), Image::new(0, 0)))
             }
-            None => self
-                .files
-                .assemble(job_id, width, height, &tiles_of(grid.frame(0)))?
-                .to_png(),
+            None => {
+                let image = self
+                    .files
+                    .assemble(job_id, width, height, &tiles_of(grid.frame(0)))?;
+                (image.to_png(), image)
+            }
         };
         // The job's image is its (first) frame, so single-image clients keep working. Last,
         // because storing it drops the tiles.
-        self.files.put_image(job_id, &first)?;
+        self.files.put_image(job_id, &first.0, &first.1)?;
         Ok(())
     }
 
-    /// The PNG of one frame of the job (its first frame when `frame` is None): the stored
-    /// final image, or one assembled from the frame's finished tiles with the rest black.
-    /// Blocking.
+    /// The PNG of one frame of the job; see [`Farm::image_in`]. Blocking.
     pub fn image(&self, job_id: u64, frame: Option<u32>) -> Result<Vec<u8>> {
+        self.image_in(job_id, frame, ImageFormat::Png)
+    }
+
+    /// One frame of the job (its first frame when `frame` is None) encoded as `format`:
+    /// from the stored final image, or assembled from the frame's finished tiles with the
+    /// rest black. Blocking.
+    pub fn image_in(
+        &self,
+        job_id: u64,
+        frame: Option<u32>,
+        format: ImageFormat,
+    ) -> Result<Vec<u8>> {
         let (width, height, tiles, state, stored) = {
             let state = self.lock();
             let job = state.job(job_id)?;
@@ -168,15 +183,39 @@ impl Farm {
             )
         };
         if state == JobState::Done {
-            let png = match stored {
-                StoredImage::Job => self.files.image(job_id)?,
-                StoredImage::Frame(f) => self.files.frame_image(job_id, f)?,
-            };
-            if let Some(png) = png {
-                return Ok(png);
+            if format == ImageFormat::Png {
+                let png = match stored {
+                    StoredImage::Job => self.files.image(job_id)?,
+                    StoredImage::Frame(f) => self.files.frame_image(job_id, f)?,
+                };
+                if let Some(png) = png {
+                    return Ok(png);
+                }
+            } else {
+                let linear = match stored {
+                    StoredImage::Job => self.files.linear_image(job_id, width, height)?,
+                    StoredImage::Frame(f) => {
+                        self.files.frame_linear_image(job_id, f, width, height)?
+                    }
+                };
+                match linear {
+                    Some(image) => return Ok(image.encode(format)),
+                    // Finished by a coordinator that kept only the PNG: the tiles are gone.
+                    None if self.files.image(job_id)?.is_some() => {
+                        return Err(FarmError::NotFound(format!(
+                            "job {job_id} kept only its PNG (it finished before linear \
+                             images were stored): no {} is available",
+                            format.extension()
+                        )))
+                    }
+                    None => {}
+                }
             }
         }
-        Ok(self.files.assemble(job_id, width, height, &tiles)?.to_png())
+        Ok(self
+            .files
+            .assemble(job_id, width, height, &tiles)?
+            .encode(format))
     }
 
     /// Every frame's PNG of a finished job, in frame order, as (frame, bytes). Blocking.

@@ -228,6 +228,20 @@ fn a_frame_range_job_tiles_every_frame_and_assembles_each_on_its_own() {
         f.farm.image(job.id, Some(6)),
         Err(FarmError::NotFound(_))
     ));
+    // The tiles are gone, yet each frame's linear pixels are served exactly.
+    for (frame, value) in [(None, 0.3f32), (Some(4), 0.4), (Some(5), 0.5)] {
+        let pfm = f
+            .farm
+            .image_in(job.id, frame, tracer_core::ImageFormat::Pfm)
+            .unwrap();
+        let linear = tracer_core::Image::from_pixels(16, 16, vec![value; 3 * 16 * 16]).unwrap();
+        assert_eq!(pfm, linear.to_pfm(), "frame {frame:?}");
+        let exr = f
+            .farm
+            .image_in(job.id, frame, tracer_core::ImageFormat::Exr)
+            .unwrap();
+        assert_eq!(exr, linear.to_exr(), "frame {frame:?}");
+    }
 }
 
 #[test]

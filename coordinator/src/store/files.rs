@@ -1,5 +1,6 @@
 //! Files under the data dir: content-addressed blobs (scenes and assets, each stored once),
-//! finished tiles' pixels and finished images. Every write goes to a temporary name first and
+//! finished tiles' pixels and finished images (each frame's PNG and, beside it, its linear
+//! f32 pixels, from which EXR and PFM are encoded on request). Every write goes to a temporary name first and
 //! is renamed into place, so a crash never leaves a half-written file under a real name.
 
 use std::fs;
@@ -7,7 +8,7 @@ use std::io::{ErrorKind, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use protocol::pixels_from_bytes;
+use protocol::{pixels_from_bytes, pixels_to_bytes};
 use tracer_core::{Image, TileRect};
 
 use super::StoreError;
@@ -110,6 +111,10 @@ impl Files {
         self.job_dir(job_id).join("image.png")
     }
 
+    fn linear_path(&self, job_id: u64) -> PathBuf {
+        self.job_dir(job_id).join("image.f32")
+    }
+
     /// Persists a finished tile's pixels (f32 little-endian), before it is acknowledged.
     pub fn put_tile(&self, job_id: u64, tile: u32, pixels: &[u8]) -> Result<(), StoreError> {
         self.write_atomic(&self.tile_path(job_id, tile), pixels)
@@ -140,8 +145,11 @@ impl Files {
         tracer_core::film::assemble(width, height, tiles)
     }
 
-    /// Writes the final PNG and drops the tiles it was made of.
-    pub fn put_image(&self, job_id: u64, png: &[u8]) -> Result<(), StoreError> {
+    /// Writes the final PNG and its linear pixels, then drops the tiles they were made of.
+    /// The linear pixels take what the tiles took, so a job never holds more on disk than
+    /// while it rendered. The PNG is written last: its presence marks a complete image.
+    pub fn put_image(&self, job_id: u64, png: &[u8], linear: &Image) -> Result<(), StoreError> {
+        self.write_atomic(&self.linear_path(job_id), &pixels_to_bytes(&linear.pixels))?;
         self.write_atomic(&self.image_path(job_id), png)?;
         let _ = fs::remove_dir_all(self.job_dir(job_id).join("tiles"));
         Ok(())
@@ -151,20 +159,62 @@ impl Files {
         Self::read_optional(&self.image_path(job_id))
     }
 
-    fn frame_path(&self, job_id: u64, frame: u32) -> PathBuf {
-        self.job_dir(job_id)
-            .join("frames")
-            .join(format!("{frame:04}.png"))
+    /// The linear pixels stored by [`Files::put_image`] for a `width`×`height` job.
+    pub fn linear_image(
+        &self,
+        job_id: u64,
+        width: u32,
+        height: u32,
+    ) -> Result<Option<Image>, StoreError> {
+        Self::read_linear(&self.linear_path(job_id), width, height)
     }
 
-    /// One frame of a frame-range job. Written before [`Files::put_image`], which drops the
-    /// tiles every frame is assembled from.
-    pub fn put_frame_image(&self, job_id: u64, frame: u32, png: &[u8]) -> Result<(), StoreError> {
-        self.write_atomic(&self.frame_path(job_id, frame), png)
+    fn frame_path(&self, job_id: u64, frame: u32, extension: &str) -> PathBuf {
+        self.job_dir(job_id)
+            .join("frames")
+            .join(format!("{frame:04}.{extension}"))
+    }
+
+    /// One frame of a frame-range job, PNG and linear pixels. Written before
+    /// [`Files::put_image`], which drops the tiles every frame is assembled from.
+    pub fn put_frame_image(
+        &self,
+        job_id: u64,
+        frame: u32,
+        png: &[u8],
+        linear: &Image,
+    ) -> Result<(), StoreError> {
+        let linear_bytes = pixels_to_bytes(&linear.pixels);
+        self.write_atomic(&self.frame_path(job_id, frame, "f32"), &linear_bytes)?;
+        self.write_atomic(&self.frame_path(job_id, frame, "png"), png)
     }
 
     pub fn frame_image(&self, job_id: u64, frame: u32) -> Result<Option<Vec<u8>>, StoreError> {
-        Self::read_optional(&self.frame_path(job_id, frame))
+        Self::read_optional(&self.frame_path(job_id, frame, "png"))
+    }
+
+    /// The linear pixels of one frame stored by [`Files::put_frame_image`].
+    pub fn frame_linear_image(
+        &self,
+        job_id: u64,
+        frame: u32,
+        width: u32,
+        height: u32,
+    ) -> Result<Option<Image>, StoreError> {
+        Self::read_linear(&self.frame_path(job_id, frame, "f32"), width, height)
+    }
+
+    fn read_linear(path: &Path, width: u32, height: u32) -> Result<Option<Image>, StoreError> {
+        let Some(bytes) = Self::read_optional(path)? else {
+            return Ok(None);
+        };
+        let corrupt =
+            |e: &dyn std::fmt::Display| StoreError::Corrupt(format!("{}: {e}", path.display()));
+        let pixels = pixels_from_bytes(&bytes, TileRect::new(0, 0, width, height))
+            .map_err(|e| corrupt(&e))?;
+        Image::from_pixels(width, height, pixels)
+            .map(Some)
+            .map_err(|e| corrupt(&e))
     }
 
     fn read_optional(path: &Path) -> Result<Option<Vec<u8>>, StoreError> {
@@ -179,7 +229,6 @@ impl Files {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use protocol::pixels_to_bytes;
 
     #[test]
     fn blobs_are_stored_once_by_content() {
@@ -218,9 +267,16 @@ mod tests {
             .enumerate()
             .map(|(i, r)| (i as u32, *r))
             .collect();
-        assert_eq!(files.assemble(7, 3, 2, &all).unwrap(), expected);
-        files.put_image(7, b"png").unwrap();
+        let assembled = files.assemble(7, 3, 2, &all).unwrap();
+        assert_eq!(assembled, expected);
+        assert_eq!(files.linear_image(7, 3, 2).unwrap(), None);
+        files.put_image(7, b"png", &assembled).unwrap();
         assert_eq!(files.image(7).unwrap().unwrap(), b"png");
+        assert_eq!(files.linear_image(7, 3, 2).unwrap(), Some(expected));
+        assert!(
+            matches!(files.linear_image(7, 3, 3), Err(StoreError::Corrupt(_))),
+            "a stored image of the wrong size is corrupt, not a panic"
+        );
         assert!(
             files.tile(7, 0, rects[0]).is_err(),
             "tiles are dropped with the image"

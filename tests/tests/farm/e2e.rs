@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use protocol::client::Client;
 use protocol::JobState;
+use tracer_core::ImageFormat;
 
 use crate::helpers::*;
 
@@ -68,10 +69,25 @@ async fn two_workers_render_stacks_exactly_like_the_tracer() {
             farm_png == tracer,
             "the farm's PNG differs from tracer render's (tile {tile}, spp {spp})"
         );
+        // The linear image too: EXR and PFM bytes equal the tracer's.
+        for format in [ImageFormat::Exr, ImageFormat::Pfm] {
+            let farm = client.image_in(job.id, None, format).await.unwrap();
+            let tracer = tracer_image(&scene, &spec, tmp.path(), format.extension());
+            assert!(
+                farm == tracer,
+                "the farm's {format:?} differs from tracer render's (tile {tile}, spp {spp})"
+            );
+        }
         let logs: Vec<String> = workers.iter().map(Proc::log_text).collect();
         let counts = rendered_tiles(&logs, job.id);
         assert_eq!(counts.len() as u32, done.tiles_total, "every tile rendered");
     }
+    let bogus = reqwest::get(format!("{}/api/v1/jobs/1/image?format=bogus", coord.url))
+        .await
+        .unwrap();
+    assert_eq!(bogus.status(), 400);
+    let error: protocol::ApiError = bogus.json().await.unwrap();
+    assert!(error.error.contains("bogus"), "{error:?}");
     let logs: Vec<String> = workers.iter().map(Proc::log_text).collect();
     for (i, log) in logs.iter().enumerate() {
         assert!(
@@ -160,6 +176,28 @@ fn coordinator_render_matches_the_tracer_on_the_showcase_scene() {
             "coordinator render --workers {workers} differs from tracer render"
         );
     }
+    // `-o out.exr` downloads the linear image, the tracer's bytes too.
+    let exr = coordinator_render(
+        &scene,
+        &tmp.path().join("farm.exr"),
+        &[
+            "--width",
+            "160",
+            "--height",
+            "120",
+            "--spp",
+            "4",
+            "--workers",
+            "3",
+            "--tile-size",
+            "24",
+            "-q",
+        ],
+    );
+    assert!(
+        exr == tracer_image(&scene, &spec, tmp.path(), "exr"),
+        "coordinator render -o farm.exr differs from tracer render -o x.exr"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -191,6 +229,18 @@ async fn a_frame_range_job_yields_each_frame_exactly_like_the_tracer() {
         frames.push(farm_png);
     }
     assert_ne!(frames[0], frames[2], "the frames show the animation");
+    // A frame's linear image, stored beside its PNG after the tiles are gone.
+    let farm_exr = client
+        .image_in(job.id, Some(3), ImageFormat::Exr)
+        .await
+        .unwrap();
+    let mut still = spec.clone();
+    still.frames = None;
+    still.render.frame = 3;
+    assert!(
+        farm_exr == tracer_image(&scene, &still, tmp.path(), "exr"),
+        "frame 3: the farm's EXR differs from tracer render --frame 3 -o x.exr"
+    );
     // The job's own image is its first frame; a frame it does not render is a 404.
     assert_eq!(client.image(job.id).await.unwrap(), frames[0]);
     let missing = reqwest::get(format!(
@@ -317,7 +367,10 @@ fn both_command_lines_share_flags_and_exit_codes() {
         );
         let (code, err) = run(bin, &["nosuch.scene", "-o", "x.jpg"]);
         assert_eq!(code, Some(2), "{err}");
-        assert!(err.contains("only PNG output is supported"), "{err}");
+        assert!(
+            err.contains("the output must be a .png, .exr or .pfm file"),
+            "{err}"
+        );
         let (code, err) = run(
             bin,
             &[

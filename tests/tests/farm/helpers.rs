@@ -198,7 +198,12 @@ pub fn start_worker(url: &str, name: &str, extra: &[&str], log: PathBuf) -> Proc
 
 /// `tracer render` with the same settings: the reference the farm must equal byte for byte.
 pub fn tracer_png(scene: &Path, spec: &JobSpec, out_dir: &Path) -> Vec<u8> {
-    let out = out_dir.join("tracer.png");
+    tracer_image(scene, spec, out_dir, "png")
+}
+
+/// Like [`tracer_png`], written as `tracer.<extension>` (`exr`, `pfm`): the file's bytes.
+pub fn tracer_image(scene: &Path, spec: &JobSpec, out_dir: &Path, extension: &str) -> Vec<u8> {
+    let out = out_dir.join(format!("tracer.{extension}"));
     let s = &spec.render;
     let status = Command::new(&bins().tracer)
         .arg("render")

@@ -257,7 +257,7 @@ fn render_frame(
     };
     let image = pool.install(|| renderer.render_image(&|done, _| bar.set_position(done)));
     bar.finish_and_clear();
-    image.write_png(output).map_err(|source| Failure::Write {
+    image.save(output).map_err(|source| Failure::Write {
         path: output.to_path_buf(),
         source,
     })?;
