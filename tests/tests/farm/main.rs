@@ -5,6 +5,7 @@
 mod helpers;
 
 mod api;
+mod client_cli;
 mod dashboard;
 mod dashboard_api;
 mod deploy;
