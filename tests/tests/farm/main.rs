@@ -6,6 +6,7 @@ mod helpers;
 
 mod api;
 mod client_cli;
+mod config;
 mod dashboard;
 mod dashboard_api;
 mod deploy;
