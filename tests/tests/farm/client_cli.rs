@@ -41,7 +41,7 @@ fn json(url: &str, args: &[&str]) -> Value {
 }
 
 /// The rows of a table whose first column is `id`.
-fn row<'a>(table: &'a str, id: u64) -> Vec<&'a str> {
+fn row(table: &str, id: u64) -> Vec<&str> {
     table
         .lines()
         .skip(1)
