@@ -8,8 +8,8 @@ use serde::de::DeserializeOwned;
 
 use crate::{
     ApiError, Bundle, Completion, FailureReport, JobInfo, JobSpec, Lease, LeaseRequest,
-    LeaseStatus, TilePage, WorkerIdentity, WorkerRegistration, API_PREFIX, CONTENT_TYPE_BLOB_REF,
-    PART_JOB, PART_SCENE,
+    LeaseStatus, TilePage, WorkerIdentity, WorkerInfo, WorkerRegistration, API_PREFIX,
+    CONTENT_TYPE_BLOB_REF, PART_JOB, PART_SCENE,
 };
 
 #[derive(Debug, thiserror::Error)]
@@ -304,6 +304,16 @@ impl Client {
 
     pub async fn cancel(&self, id: u64) -> Result<JobInfo> {
         Self::json(self.request(Method::DELETE, &format!("/jobs/{id}"))).await
+    }
+
+    /// Requeues a failed job's failed tiles (409 when the job has not failed).
+    pub async fn retry(&self, id: u64) -> Result<JobInfo> {
+        Self::json(self.request(Method::POST, &format!("/jobs/{id}/retry"))).await
+    }
+
+    /// Every worker the coordinator knows, by name then id.
+    pub async fn workers(&self) -> Result<Vec<WorkerInfo>> {
+        Self::json(self.request(Method::GET, "/workers")).await
     }
 
     /// The job's PNG (its first frame): final when it is done, partial while it runs.

@@ -1,10 +1,11 @@
-//! `worker --coordinator URL [--token T] [--threads N] [--name NAME]`: pulls tiles until told to
-//! stop (SIGINT or SIGTERM), then hands its tile back and exits.
+//! `worker --coordinator URL [--token T] [--threads N] [--name NAME] [--config farm.toml]`:
+//! pulls tiles until told to stop (SIGINT or SIGTERM), then hands its tile back and exits.
+//! Every flag may also come from its TESSERA_* variable or the file's `[worker]` table.
 
 use std::process::ExitCode;
 use std::time::Duration;
 
-use clap::Parser;
+use clap::{CommandFactory, Parser};
 use protocol::client::Client;
 use worker::{available_cores, SceneCache, Shutdown, Worker, WorkerConfig};
 
@@ -15,6 +16,10 @@ use worker::{available_cores, SceneCache, Shutdown, Worker, WorkerConfig};
     about = "Tessera farm worker: renders tiles for a coordinator"
 )]
 struct Args {
+    /// Read flags from the `[worker]` table of this TOML file; a flag given on the command
+    /// line or in its TESSERA_* variable wins over the file.
+    #[arg(long, env = "TESSERA_CONFIG")]
+    config: Option<std::path::PathBuf>,
     /// The coordinator's URL, such as http://10.0.0.5:7878.
     #[arg(long, env = "TESSERA_COORDINATOR")]
     coordinator: String,
@@ -22,21 +27,29 @@ struct Args {
     #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
     token: Option<String>,
     /// Render threads [default: every core].
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_THREADS")]
     threads: Option<usize>,
     /// A label for listings and logs [default: host-pid]; the coordinator issues the identity.
     #[arg(long, env = "TESSERA_WORKER_NAME")]
     name: Option<String>,
     /// Longest pause between retries while the coordinator is unreachable, in seconds.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = 5.0, env = "TESSERA_MAX_BACKOFF")]
     max_backoff: f64,
     /// Serve liveness (GET /livez) and readiness (GET /readyz) probes on this address.
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_HEALTH_LISTEN")]
     health_listen: Option<String>,
 }
 
 fn main() -> ExitCode {
-    let args = Args::parse();
+    let argv = std::env::args_os().collect();
+    let argv = match worker::config_file::with_file_flags(&Args::command(), argv, &[], "worker") {
+        Ok(argv) => argv,
+        Err(e) => {
+            eprintln!("worker: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    let args = Args::parse_from(argv);
     worker::init_logging("info");
     let threads = args.threads.unwrap_or_else(available_cores).max(1);
     let name = args.name.unwrap_or_else(worker::run::default_name);

@@ -1,6 +1,8 @@
-//! The `coordinator` command line: `serve`, `render` (the embedded one-command farm) and
-//! `submit`. Flags are parsed into plain structs here; the commands build everything else.
+//! The `coordinator` command line: `serve`, `render` (the embedded one-command farm),
+//! `submit`, `report`, and the client commands (`jobs`, `show`, `cancel`, `retry`, `download`,
+//! `workers`). Flags are parsed into plain structs here; the commands build everything else.
 
+mod client;
 mod render;
 mod report;
 mod serve;
@@ -20,7 +22,7 @@ pub use submit::collect_submission;
 #[command(
     name = "coordinator",
     version,
-    about = "Tessera render farm: serve a farm, render through an embedded one, or submit jobs"
+    about = "Tessera render farm: serve a farm, render through an embedded one, or submit and manage jobs"
 )]
 pub struct Cli {
     #[command(subcommand)]
@@ -38,6 +40,18 @@ pub enum Command {
     /// Measure error against run time through the embedded farm at several worker counts:
     /// report.csv, report.md and error_vs_time.png.
     Report(report::ReportArgs),
+    /// List the coordinator's jobs.
+    Jobs(client::ListArgs),
+    /// Show one job: state, progress, settings, errors.
+    Show(client::JobArgs),
+    /// Cancel a queued or running job.
+    Cancel(client::JobArgs),
+    /// Requeue a failed job's failed tiles.
+    Retry(client::JobArgs),
+    /// Download a job's image (or with --frames every frame, numbered).
+    Download(client::DownloadArgs),
+    /// List the workers the coordinator knows.
+    Workers(client::ListArgs),
 }
 
 /// Render settings, declared once in tracer-core and shared with `tracer render`, plus the
@@ -130,6 +144,12 @@ pub fn main(cli: Cli) -> ExitCode {
         Command::Render(args) => render::run(args),
         Command::Submit(args) => submit::run(args),
         Command::Report(args) => report::run(args),
+        Command::Jobs(args) => client::jobs(args),
+        Command::Show(args) => client::show(args),
+        Command::Cancel(args) => client::cancel(args),
+        Command::Retry(args) => client::retry(args),
+        Command::Download(args) => client::download(args),
+        Command::Workers(args) => client::workers(args),
     }
 }
 

@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::Duration;
 
+use clap::builder::FalseyValueParser;
 use clap::Args;
 
 use crate::clock::SystemClock;
@@ -15,71 +16,75 @@ use crate::farm::Farm;
 
 #[derive(Args, Debug)]
 pub struct ServeArgs {
+    /// Read flags from the `[serve]` table of this TOML file; a flag given on the command line
+    /// or in its TESSERA_* variable wins over the file.
+    #[arg(long, env = "TESSERA_CONFIG")]
+    pub config: Option<PathBuf>,
     /// Address to listen on (port 0 picks a free port, printed on stdout).
-    #[arg(long, default_value = "127.0.0.1:7878")]
+    #[arg(long, default_value = "127.0.0.1:7878", env = "TESSERA_LISTEN")]
     pub listen: String,
     /// Where jobs, assets, tiles and images are kept; a restart on the same dir resumes.
-    #[arg(long, default_value = "tessera-data")]
+    #[arg(long, default_value = "tessera-data", env = "TESSERA_DATA_DIR")]
     pub data_dir: PathBuf,
     /// Require `Authorization: Bearer <token>` on every API call.
     #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
     /// Allow a non-loopback listen address without a token.
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_INSECURE", value_parser = FalseyValueParser::new())]
     pub insecure: bool,
     /// Seconds without a heartbeat before a worker's tile is requeued.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = 5.0, env = "TESSERA_LEASE_TIMEOUT")]
     pub lease_timeout: f64,
     /// Seconds between worker heartbeats (and so how fast a cancel reaches them).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, env = "TESSERA_HEARTBEAT")]
     pub heartbeat: f64,
     /// Seconds that leases granted before a restart stay valid after it.
-    #[arg(long, default_value_t = 15.0)]
+    #[arg(long, default_value_t = 15.0, env = "TESSERA_RESTART_GRACE")]
     pub restart_grace: f64,
     /// Never hand idle workers copies of slow tiles.
-    #[arg(long)]
+    #[arg(long, env = "TESSERA_NO_STRAGGLERS", value_parser = FalseyValueParser::new())]
     pub no_stragglers: bool,
     /// Largest submission, in MiB.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, env = "TESSERA_MAX_UPLOAD_MIB")]
     pub max_upload_mib: usize,
     /// Largest width or height.
-    #[arg(long, default_value_t = Limits::default().max_dimension)]
+    #[arg(long, default_value_t = Limits::default().max_dimension, env = "TESSERA_MAX_DIMENSION")]
     pub max_dimension: u32,
     /// Largest samples per pixel.
-    #[arg(long, default_value_t = Limits::default().max_spp)]
+    #[arg(long, default_value_t = Limits::default().max_spp, env = "TESSERA_MAX_SPP")]
     pub max_spp: u32,
     /// Largest ray depth.
-    #[arg(long, default_value_t = Limits::default().max_depth)]
+    #[arg(long, default_value_t = Limits::default().max_depth, env = "TESSERA_MAX_DEPTH")]
     pub max_depth: u32,
     /// Most tiles in one job, every frame counted (frames × tiles per frame).
-    #[arg(long, default_value_t = Limits::default().max_job_tiles)]
+    #[arg(long, default_value_t = Limits::default().max_job_tiles, env = "TESSERA_MAX_JOB_TILES")]
     pub max_job_tiles: u64,
     /// Most worker identities kept; registering beyond it forgets the longest-silent idle one.
-    #[arg(long, default_value_t = FarmConfig::default().max_workers)]
+    #[arg(long, default_value_t = FarmConfig::default().max_workers, env = "TESSERA_MAX_WORKERS")]
     pub max_workers: usize,
     /// Decoded pixels of all a scene's textures together (each PNG's header is read before
     /// it is decoded).
-    #[arg(long, default_value_t = Limits::default().max_texture_pixels)]
+    #[arg(long, default_value_t = Limits::default().max_texture_pixels, env = "TESSERA_MAX_TEXTURE_PIXELS")]
     pub max_texture_pixels: u64,
     /// Primitives in one scene: spheres, triangles, and each distinct mesh's triangles (also
     /// bounds the XML elements a scene file may hold).
-    #[arg(long, default_value_t = Limits::default().max_scene_primitives)]
+    #[arg(long, default_value_t = Limits::default().max_scene_primitives, env = "TESSERA_MAX_SCENE_PRIMITIVES")]
     pub max_scene_primitives: u64,
     /// Seconds a client has to send a complete request head, from connecting or from the
     /// first byte of a later request; slower connections are closed.
-    #[arg(long, default_value_t = ConnectionLimits::default().header_timeout.as_secs_f64())]
+    #[arg(long, default_value_t = ConnectionLimits::default().header_timeout.as_secs_f64(), env = "TESSERA_HEADER_TIMEOUT")]
     pub header_timeout: f64,
     /// Seconds a kept-alive connection may sit idle between requests before it is closed;
     /// also the longest pause in a submission's upload (then 408).
-    #[arg(long, default_value_t = ConnectionLimits::default().idle_timeout.as_secs_f64())]
+    #[arg(long, default_value_t = ConnectionLimits::default().idle_timeout.as_secs_f64(), env = "TESSERA_IDLE_TIMEOUT")]
     pub idle_timeout: f64,
     /// Connections served at once (kept below three quarters of the descriptor limit);
     /// further clients wait to be accepted.
-    #[arg(long, default_value_t = ConnectionLimits::default().max_connections)]
+    #[arg(long, default_value_t = ConnectionLimits::default().max_connections, env = "TESSERA_MAX_CONNECTIONS")]
     pub max_connections: usize,
     /// Submissions, resubmits and camera reads that may load a scene at once; further ones
     /// wait their turn before their upload is read.
-    #[arg(long, default_value_t = ConnectionLimits::default().max_scene_builds)]
+    #[arg(long, default_value_t = ConnectionLimits::default().max_scene_builds, env = "TESSERA_MAX_SCENE_BUILDS")]
     pub max_scene_builds: usize,
 }
 
@@ -255,6 +260,103 @@ mod tests {
         assert!(check_exposure(any, Some("t"), false).is_ok());
         assert!(check_exposure(any, None, true).is_ok());
         assert!(check_exposure(lo, Some(""), false).is_err());
+    }
+
+    /// Held by the tests that set a TESSERA_* variable or parse defaults that one could change.
+    static ENV: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+    /// `coordinator ARGV` with the `[serve]` flags of `file` (TOML text) joined, parsed.
+    fn serve_with_file(argv: &[&str], file: &str) -> Result<ServeArgs, String> {
+        use clap::{CommandFactory, Parser};
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("farm.toml");
+        std::fs::write(&path, file).unwrap();
+        let mut argv: Vec<std::ffi::OsString> = argv.iter().map(Into::into).collect();
+        argv.extend(["--config".into(), path.into_os_string()]);
+        let argv = worker::config_file::with_file_flags(
+            &super::super::Cli::command(),
+            argv,
+            &["serve"],
+            "serve",
+        )?;
+        match super::super::Cli::try_parse_from(argv)
+            .map_err(|e| e.to_string())?
+            .command
+        {
+            super::super::Command::Serve(args) => Ok(args),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn flags_beat_the_environment_which_beats_the_file_which_beats_defaults() {
+        let file =
+            "[serve]\nmax-spp = 64\nmax_depth = 7\nno-stragglers = true\nlease-timeout = 8\n\
+                    [worker]\ncoordinator = \"http://x:1\"\n";
+        let _env = ENV.lock().unwrap_or_else(|e| e.into_inner());
+        // The file alone, and the defaults under it.
+        let args = serve_with_file(&["coordinator", "serve"], file).unwrap();
+        assert_eq!((args.max_spp, args.max_depth), (64, 7));
+        assert!(args.no_stragglers);
+        assert_eq!(args.lease_timeout, 8.0);
+        assert_eq!(args.max_dimension, Limits::default().max_dimension);
+        assert_eq!(args.listen, "127.0.0.1:7878");
+        // TESSERA_MAX_DEPTH is read by this test only.
+        std::env::set_var("TESSERA_MAX_DEPTH", "9");
+        let env = serve_with_file(&["coordinator", "serve"], file);
+        let flag = serve_with_file(
+            &["coordinator", "serve", "--max-depth", "3", "--max-spp", "2"],
+            file,
+        );
+        std::env::remove_var("TESSERA_MAX_DEPTH");
+        let env = env.unwrap();
+        assert_eq!((env.max_spp, env.max_depth), (64, 9));
+        let flag = flag.unwrap();
+        assert_eq!((flag.max_spp, flag.max_depth), (2, 3));
+    }
+
+    #[test]
+    fn an_unknown_key_is_refused_with_its_name_and_file() {
+        let err =
+            serve_with_file(&["coordinator", "serve"], "[serve]\nmax-spps = 4\n").unwrap_err();
+        assert!(err.contains("unknown key `max-spps` in [serve]"), "{err}");
+        assert!(err.contains("farm.toml"), "{err}");
+        // A key of the other command is unknown here.
+        let err = serve_with_file(&["coordinator", "serve"], "[serve]\nthreads = 4\n").unwrap_err();
+        assert!(err.contains("`threads`"), "{err}");
+        // A value of the wrong type is refused like the same flag would be.
+        let err = serve_with_file(&["coordinator", "serve"], "[serve]\nmax-spp = \"many\"\n")
+            .unwrap_err();
+        assert!(err.contains("many"), "{err}");
+    }
+
+    #[test]
+    fn the_example_file_holds_every_flag_at_its_default() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/farm.example.toml");
+        let file = std::fs::read_to_string(path).unwrap();
+        let _env = ENV.lock().unwrap_or_else(|e| e.into_inner());
+        let args = serve_with_file(&["coordinator", "serve"], &file).unwrap();
+        assert_eq!(args.listen, "0.0.0.0:7878");
+        let defaults = serve_with_file(&["coordinator", "serve"], "").unwrap();
+        assert_eq!(
+            format!("{:?}", args.config().unwrap()),
+            format!("{:?}", defaults.config().unwrap())
+        );
+        // Every serve flag but the config file itself and the token appears in the example.
+        use clap::CommandFactory;
+        let cli = super::super::Cli::command();
+        let serve = cli.find_subcommand("serve").unwrap();
+        for arg in serve.get_arguments().filter_map(|a| a.get_long()) {
+            if !["config", "help", "token"].contains(&arg) {
+                assert!(
+                    file.lines().any(|l| l
+                        .trim_start()
+                        .trim_start_matches("# ")
+                        .starts_with(&format!("{arg} ="))),
+                    "{arg} is missing from {path}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -13,16 +13,13 @@ use tracer_core::cli_args::{exit, OutputArgs};
 use tracer_core::scene::SceneDescription;
 use tracer_core::{AssetSource, FsAssets};
 
+use super::client::ServerArgs;
 use super::{Failure, SettingsArgs};
 
 #[derive(Args, Debug)]
 pub struct SubmitArgs {
-    /// The coordinator's URL.
-    #[arg(long, env = "TESSERA_COORDINATOR")]
-    pub server: String,
-    /// The coordinator's bearer token.
-    #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
+    #[command(flatten)]
+    pub server: ServerArgs,
     /// The scene file; its assets are found beside it (or in its parent folder).
     pub scene: PathBuf,
     /// `-o`: download the finished image there (implies --wait).
@@ -64,6 +61,8 @@ pub fn collect_submission(scene: &Path, spec: JobSpec) -> Result<Submission, Fai
 /// the farm refused exits as a scene error, other refused requests as usage errors.
 pub fn describe(e: ClientError) -> Failure {
     let refused = match &e {
+        // The client reads every 409 as a stale lease; to a user it is a refused request.
+        ClientError::Stale(message) => return Failure::usage(format!("{message} (HTTP 409)")),
         ClientError::Api { body, status, .. } => {
             if let (Some(_), Some(_)) = (&body.file, body.line) {
                 return Failure {
@@ -148,7 +147,7 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
     let submission = collect_submission(&args.scene, spec)?;
     let runtime = super::runtime()?;
     runtime.block_on(async move {
-        let client = Client::new(&args.server, args.token.clone()).map_err(Failure::usage)?;
+        let client = args.server.client()?;
         let job = client.submit(&submission).await.map_err(describe)?;
         eprintln!(
             "submitted job {} ({}, {} tiles)",

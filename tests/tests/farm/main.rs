@@ -5,6 +5,8 @@
 mod helpers;
 
 mod api;
+mod client_cli;
+mod config;
 mod dashboard;
 mod dashboard_api;
 mod deploy;
