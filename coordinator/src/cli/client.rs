@@ -161,6 +161,9 @@ pub fn workers(args: ListArgs) -> ExitCode {
 
 pub fn download(args: DownloadArgs) -> ExitCode {
     run_async("download", || async move {
+        // The format comes from the output's extension, checked before anything is fetched.
+        let format = tracer_core::cli_args::check_output(&args.output)
+            .map_err(|e| Failure::usage(e.to_string()))?;
         let client = args.server.client()?;
         let job = client.job(args.id).await.map_err(describe)?;
         if job.state != JobState::Done {
@@ -179,8 +182,11 @@ pub fn download(args: DownloadArgs) -> ExitCode {
             }
             super::download(&client, &job, &args.output).await?
         } else {
-            let png = client.image(job.id).await.map_err(describe)?;
-            super::write_png(&args.output, &png)?;
+            let bytes = client
+                .image_in(job.id, None, format)
+                .await
+                .map_err(describe)?;
+            super::write_image(&args.output, &bytes)?;
             vec![args.output.clone()]
         };
         if args.json {
