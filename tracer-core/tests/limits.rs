@@ -5,28 +5,10 @@ mod common;
 
 use std::io::Cursor;
 
+use common::scene;
+
 use tracer_core::scene::{FsAssets, SceneDescription, MAX_DEPTH};
 use tracer_core::{Image, LoadLimits, MemoryAssets, RenderSettings, Renderer, Scene};
-
-/// A minimal valid scene; `{extra}` lands inside the root.
-fn scene(extra: &str) -> String {
-    format!(
-        r#"<scene>
-    <camera>
-        <fov v=".785"/>
-        <near_clip v=".01"/>
-        <far_clip v="100"/>
-        <position x="0" y="0" z="5"/>
-        <orientation a="0" x="0" y="1" z="0"/>
-    </camera>
-    <background_color r="0" g="0" b="0"/>
-    <refractive_index v="1"/>
-    <material name="m"/>
-{extra}
-</scene>
-"#
-    )
-}
 
 fn limits(max_texture_pixels: u64, max_primitives: u64) -> LoadLimits {
     LoadLimits {

@@ -1,28 +1,11 @@
 //! Every fatal case of conventions §1.12 (and the inputs §12 says to reject) is an error value
 //! located at file:line:column, never a panic.
 
+mod common;
+
+use common::scene;
 use tracer_core::scene::SceneDescription;
 use tracer_core::{MemoryAssets, Scene};
-
-/// A minimal valid scene; `{extra}` lands inside the root and `{camera_extra}` in the camera.
-fn scene(extra: &str) -> String {
-    format!(
-        r#"<scene>
-    <camera>
-        <fov v=".785"/>
-        <near_clip v=".01"/>
-        <far_clip v="100"/>
-        <position x="0" y="0" z="5"/>
-        <orientation a="0" x="0" y="1" z="0"/>
-    </camera>
-    <background_color r="0" g="0" b="0"/>
-    <refractive_index v="1"/>
-    <material name="m"/>
-{extra}
-</scene>
-"#
-    )
-}
 
 /// Parses and asserts the error's line, column and message fragment.
 fn fails_at(text: &str, line: u32, column: u32, fragment: &str) {

@@ -465,6 +465,25 @@ mod tests {
         max_attempts: 5,
     };
 
+    /// A new job as a submission stores it: queued, nothing rendered.
+    fn queued_stored_job(name: &str, spec: JobSpec) -> StoredJob {
+        StoredJob {
+            id: 0,
+            name: name.into(),
+            scene_file: format!("{name}.scene"),
+            scene_hash: "0".repeat(64),
+            spec,
+            state: JobState::Queued,
+            error: None,
+            created_ms: 0,
+            started_ms: None,
+            finished_ms: None,
+            assets: vec![],
+            tiles_done: vec![],
+            failures: vec![],
+        }
+    }
+
     /// A state with one queued 4-tile job and two registered workers (ids 1 and 2).
     fn state() -> (State, u64) {
         let mut state = State::new(Db::open_in_memory().unwrap(), 1 << 32, Registry::default());
@@ -474,21 +493,7 @@ mod tests {
         spec.render.width = 16;
         spec.render.height = 16;
         spec.tile_size = 8;
-        let stored = StoredJob {
-            id: 0,
-            name: "a".into(),
-            scene_file: "a.scene".into(),
-            scene_hash: "0".repeat(64),
-            spec: spec.clone(),
-            state: JobState::Queued,
-            error: None,
-            created_ms: 0,
-            started_ms: None,
-            finished_ms: None,
-            assets: vec![],
-            tiles_done: vec![],
-            failures: vec![],
-        };
+        let stored = queued_stored_job("a", spec.clone());
         let grid = TileGrid::new(&spec);
         let job = Job {
             id: 0,
@@ -757,21 +762,7 @@ mod tests {
     #[test]
     fn new_to_queued_stores_the_job_before_it_is_listed() {
         let (mut s, first) = state();
-        let stored = StoredJob {
-            id: 0,
-            name: "b".into(),
-            scene_file: "b.scene".into(),
-            scene_hash: "0".repeat(64),
-            spec: s.jobs[&first].spec.clone(),
-            state: JobState::Queued,
-            error: None,
-            created_ms: 0,
-            started_ms: None,
-            finished_ms: None,
-            assets: vec![],
-            tiles_done: vec![],
-            failures: vec![],
-        };
+        let stored = queued_stored_job("b", s.jobs[&first].spec.clone());
         let job = || Job {
             tiles: TileBook::new(4),
             ..job_like(&s.jobs[&first])

@@ -33,3 +33,23 @@ pub fn settings(width: u32, height: u32, spp: u32) -> RenderSettings {
         ..RenderSettings::default()
     }
 }
+
+/// A minimal valid scene; `{extra}` lands inside the root.
+pub fn scene(extra: &str) -> String {
+    format!(
+        r#"<scene>
+    <camera>
+        <fov v=".785"/>
+        <near_clip v=".01"/>
+        <far_clip v="100"/>
+        <position x="0" y="0" z="5"/>
+        <orientation a="0" x="0" y="1" z="0"/>
+    </camera>
+    <background_color r="0" g="0" b="0"/>
+    <refractive_index v="1"/>
+    <material name="m"/>
+{extra}
+</scene>
+"#
+    )
+}
