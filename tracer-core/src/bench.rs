@@ -28,67 +28,63 @@ pub struct BenchReport {
 
 /// Rays per parallel work item: large enough to amortise scheduling (a few µs against
 /// ~0.1 ms of tracing), small enough that the last item leaves the other thread idle briefly.
-/// Every chunk is its own item ([`par_rays`]): rayon's adaptive splitting would otherwise
+/// Every chunk is its own item ([`time_rays`]): rayon's adaptive splitting would otherwise
 /// stop at a quarter of the rays per thread, and the thread left with one such piece at the
 /// end ran alone for up to a fifth of the measure.
 const CHUNK: usize = 256;
 
-/// Runs every measurement `repeats` times and keeps the fastest (least disturbed) run.
-pub fn run(
-    scene: &Scene,
-    settings: &RenderSettings,
-    repeats: usize,
-) -> Result<BenchReport, RenderError> {
-    let repeats = repeats.max(1);
-    let renderer = Renderer::new(scene, settings)?;
-    let camera = renderer.camera();
-    let (w, h) = (settings.width, settings.height);
+/// The rays of the bench's measures on a scene, as `tracer bench` traces them.
+pub struct RaySets {
+    /// One per pixel centre, traced for hits with t in (`near`, `far`).
+    pub primary: Vec<Ray>,
+    pub near: f64,
+    pub far: f64,
+    /// One uniformly random direction from every primary hit, offset as the shader would.
+    pub incoherent: Vec<Ray>,
+    /// From every primary hit to the first light, with the distance to it (empty without
+    /// a light).
+    pub shadow: Vec<(Ray, f64)>,
+}
 
-    let build = best_of(repeats, || {
-        let started = Instant::now();
-        std::hint::black_box(scene.world.rebuilt());
-        started.elapsed()
-    });
+/// One of the ray measures of [`run`], for [`trace`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Measure {
+    Primary,
+    Incoherent,
+    Shadow,
+}
 
-    let primary: Vec<Ray> = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| camera.ray(x as f64 + 0.5, y as f64 + 0.5, w as f64, h as f64))
-        .collect();
-    let (near, far) = (camera.near, camera.far);
-    let primary_time = best_of(repeats, || {
-        time_rays(&primary, |ray| {
-            scene.world.intersect(ray, near, far).is_some()
-        })
-    });
+impl RaySets {
+    pub fn new(scene: &Scene, settings: &RenderSettings) -> Result<RaySets, RenderError> {
+        let renderer = Renderer::new(scene, settings)?;
+        let camera = renderer.camera();
+        let (w, h) = (settings.width, settings.height);
+        let primary: Vec<Ray> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| camera.ray(x as f64 + 0.5, y as f64 + 0.5, w as f64, h as f64))
+            .collect();
+        let (near, far) = (camera.near, camera.far);
 
-    // Secondary rays start at every primary hit, offset as the shader would.
-    let stage = scene.stage(settings.texture_filter, None);
-    let hits: Vec<(u32, Surface, f64)> = primary
-        .par_iter()
-        .enumerate()
-        .filter_map(|(i, ray)| {
-            let hit = scene.world.intersect(ray, near, far)?;
-            let s = stage.surface(ray, &hit);
-            Some((i as u32, s, s.position.abs().max_element() + hit.t))
-        })
-        .collect();
-    let incoherent: Vec<Ray> = hits
-        .iter()
-        .map(|(i, s, scale)| {
-            let mut rng = Rng::for_sample(settings.seed, i % w, i / w, 0);
-            let dir = uniform_sphere(rng.next_f64(), rng.next_f64());
-            spawn_ray(s.position, s.geometric_normal, dir, *scale, 0.0)
-        })
-        .collect();
-    let incoherent_time = best_of(repeats, || {
-        time_rays(&incoherent, |ray| {
-            scene.world.intersect(ray, 0.0, f64::INFINITY).is_some()
-        })
-    });
-
-    let shadow_time = match scene.lights.first() {
-        Some(light) => {
-            let shadow: Vec<(Ray, f64)> = hits
+        let stage = scene.stage(settings.texture_filter, None);
+        let hits: Vec<(u32, Surface, f64)> = primary
+            .par_iter()
+            .enumerate()
+            .filter_map(|(i, ray)| {
+                let hit = scene.world.intersect(ray, near, far)?;
+                let s = stage.surface(ray, &hit);
+                Some((i as u32, s, s.position.abs().max_element() + hit.t))
+            })
+            .collect();
+        let incoherent = hits
+            .iter()
+            .map(|(i, s, scale)| {
+                let mut rng = Rng::for_sample(settings.seed, i % w, i / w, 0);
+                let dir = uniform_sphere(rng.next_f64(), rng.next_f64());
+                spawn_ray(s.position, s.geometric_normal, dir, *scale, 0.0)
+            })
+            .collect();
+        let shadow = match scene.lights.first() {
+            Some(light) => hits
                 .iter()
                 .filter_map(|(_, s, scale)| {
                     let to_light = light.position - s.position;
@@ -100,23 +96,76 @@ pub fn run(
                         (ray, len)
                     })
                 })
-                .collect();
-            let t = best_of(repeats, || {
-                let started = Instant::now();
-                let blocked: usize = par_rays(&shadow)
-                    .map(|c| {
-                        c.iter()
-                            .filter(|(r, len)| scene.world.occluded(r, *len))
-                            .count()
-                    })
-                    .sum();
-                std::hint::black_box(blocked);
-                started.elapsed()
-            });
-            Some((shadow.len(), t))
+                .collect(),
+            None => Vec::new(),
+        };
+        Ok(RaySets {
+            primary,
+            near,
+            far,
+            incoherent,
+            shadow,
+        })
+    }
+
+    /// The number of rays of `measure`.
+    pub fn len(&self, measure: Measure) -> usize {
+        match measure {
+            Measure::Primary => self.primary.len(),
+            Measure::Incoherent => self.incoherent.len(),
+            Measure::Shadow => self.shadow.len(),
         }
-        None => None,
-    };
+    }
+}
+
+/// Traces the rays of `measure` on the calling thread; returns how many hit (or, for shadow
+/// rays, are blocked). For profiling one measure alone (`examples/bench_measure.rs`).
+pub fn trace(scene: &Scene, rays: &RaySets, measure: Measure) -> usize {
+    trace_chunk(scene, rays, measure, 0..rays.len(measure))
+}
+
+/// [`trace`] over the rays in `range`.
+fn trace_chunk(
+    scene: &Scene,
+    rays: &RaySets,
+    measure: Measure,
+    range: std::ops::Range<usize>,
+) -> usize {
+    let world = &scene.world;
+    match measure {
+        Measure::Primary => rays.primary[range]
+            .iter()
+            .filter(|r| world.intersect(r, rays.near, rays.far).is_some())
+            .count(),
+        Measure::Incoherent => rays.incoherent[range]
+            .iter()
+            .filter(|r| world.intersect(r, 0.0, f64::INFINITY).is_some())
+            .count(),
+        Measure::Shadow => rays.shadow[range]
+            .iter()
+            .filter(|(r, len)| world.occluded(r, *len))
+            .count(),
+    }
+}
+
+/// Runs every measurement `repeats` times and keeps the fastest (least disturbed) run.
+pub fn run(
+    scene: &Scene,
+    settings: &RenderSettings,
+    repeats: usize,
+) -> Result<BenchReport, RenderError> {
+    let repeats = repeats.max(1);
+    let build = best_of(repeats, || {
+        let started = Instant::now();
+        std::hint::black_box(scene.world.rebuilt());
+        started.elapsed()
+    });
+
+    let rays = RaySets::new(scene, settings)?;
+    let time = |measure| best_of(repeats, || time_rays(scene, &rays, measure));
+    let primary_time = time(Measure::Primary);
+    let incoherent_time = time(Measure::Incoherent);
+    let shadow_time = (!rays.shadow.is_empty()).then(|| time(Measure::Shadow));
 
     let one_spp = RenderSettings {
         spp: 1,
@@ -132,27 +181,26 @@ pub fn run(
     let mrays = |n: usize, t: Duration| n as f64 / t.as_secs_f64() / 1e6;
     Ok(BenchReport {
         build_ms: build.as_secs_f64() * 1e3,
-        primary_mrays: mrays(primary.len(), primary_time),
-        incoherent_mrays: mrays(incoherent.len(), incoherent_time),
-        shadow_mrays: shadow_time.map_or(0.0, |(n, t)| mrays(n, t)),
+        primary_mrays: mrays(rays.primary.len(), primary_time),
+        incoherent_mrays: mrays(rays.incoherent.len(), incoherent_time),
+        shadow_mrays: shadow_time.map_or(0.0, |t| mrays(rays.shadow.len(), t)),
         render_s: render.as_secs_f64(),
-        primary_rays: primary.len(),
-        secondary_rays: incoherent.len(),
+        primary_rays: rays.primary.len(),
+        secondary_rays: rays.incoherent.len(),
     })
 }
 
-fn time_rays(rays: &[Ray], trace: impl Fn(&Ray) -> bool + Sync) -> Duration {
+/// Traces `measure`'s rays in parallel, [`CHUNK`] rays per rayon job.
+fn time_rays(scene: &Scene, rays: &RaySets, measure: Measure) -> Duration {
+    let n = rays.len(measure);
     let started = Instant::now();
-    let hits: usize = par_rays(rays)
-        .map(|c| c.iter().filter(|r| trace(r)).count())
+    let hits: usize = (0..n.div_ceil(CHUNK))
+        .into_par_iter()
+        .with_max_len(1)
+        .map(|c| trace_chunk(scene, rays, measure, c * CHUNK..((c + 1) * CHUNK).min(n)))
         .sum();
     std::hint::black_box(hits);
     started.elapsed()
-}
-
-/// `items` in [`CHUNK`]s, each a separate rayon job.
-fn par_rays<T: Sync>(items: &[T]) -> impl IndexedParallelIterator<Item = &[T]> {
-    items.par_chunks(CHUNK).with_max_len(1)
 }
 
 fn best_of(repeats: usize, mut run: impl FnMut() -> Duration) -> Duration {
