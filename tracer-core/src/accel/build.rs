@@ -1,10 +1,10 @@
 //! Building a [`Bvh`]: binned SAH over the primitives' bounds, large subtrees in parallel,
-//! then the binary tree collapsed into 4-wide nodes with outward-rounded f32 boxes.
+//! then the binary tree collapsed into `WIDTH`-wide nodes with outward-rounded f32 boxes.
 
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::bvh::{round_down, round_up, Bvh, Node, MAX_DEPTH, NO_CHILD};
+use super::bvh::{round_down, round_up, Bvh, Node, MAX_DEPTH, NO_CHILD, WIDTH};
 use crate::geometry::Aabb;
 
 const BINS: usize = 16;
@@ -48,7 +48,7 @@ impl Tree {
 
 impl Bvh {
     /// Builds with the binned surface-area heuristic (16 bins on each axis), large subtrees
-    /// in parallel, then collapses the binary tree into 4-wide nodes. The result does not
+    /// in parallel, then collapses the binary tree into `WIDTH`-wide nodes. The result does not
     /// depend on the thread count.
     pub fn build(bounds: &[Aabb]) -> Bvh {
         Bvh::build_aligned(bounds, 1)
@@ -150,13 +150,13 @@ pub(super) fn to_f32_box(b: Aabb) -> [f32; 6] {
     ]
 }
 
-/// Appends the 4-wide node that replaces the binary node with `children`: the binary tree is
-/// opened below it, largest interior child first, until it has four children. Subtrees follow
+/// Appends the wide node that replaces the binary node with `children`: the binary tree is
+/// opened below it, largest interior child first, until it has `WIDTH` children. Subtrees follow
 /// depth first; returns the node's index.
 fn pack(children: &[Tree; 2], nodes: &mut Vec<Node>) -> u32 {
-    let mut slots: Vec<&Tree> = Vec::with_capacity(4);
+    let mut slots: Vec<&Tree> = Vec::with_capacity(WIDTH);
     slots.extend([&children[0], &children[1]]);
-    while slots.len() < 4 {
+    while slots.len() < WIDTH {
         let widest = slots
             .iter()
             .enumerate()
@@ -181,15 +181,15 @@ fn pack_node(slots: &[&Tree], nodes: &mut Vec<Node>) -> u32 {
     let index = nodes.len();
     let mut node = Node {
         bounds: [
-            [f32::INFINITY; 4],
-            [f32::NEG_INFINITY; 4],
-            [f32::INFINITY; 4],
-            [f32::NEG_INFINITY; 4],
-            [f32::INFINITY; 4],
-            [f32::NEG_INFINITY; 4],
+            [f32::INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+            [f32::INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
+            [f32::INFINITY; WIDTH],
+            [f32::NEG_INFINITY; WIDTH],
         ],
-        index: [NO_CHILD; 4],
-        count: [0; 4],
+        index: [NO_CHILD; WIDTH],
+        count: [0; WIDTH],
     };
     for (c, child) in slots.iter().enumerate() {
         let b = to_f32_box(child.bounds());

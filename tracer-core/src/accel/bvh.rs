@@ -2,19 +2,24 @@ use std::mem::MaybeUninit;
 
 use crate::geometry::{Aabb, Ray};
 
-/// A 4-wide BVH node: the boxes of up to four children in SoA f32 (one SIMD register per
-/// plane), so one visit tests four boxes at once. Boxes are rounded outward from f64, so
-/// they always contain the primitives' own bounds.
+/// Children per node. Eight halve the depth of a four-wide tree, so a ray makes fewer
+/// dependent node loads (the latency that bounds incoherent rays); each visit tests its
+/// boxes in two SSE halves.
+pub const WIDTH: usize = 8;
+
+/// A `WIDTH`-wide BVH node: the boxes of up to `WIDTH` children in SoA f32 (four children
+/// per SIMD register per plane), so one visit tests every box at once. Boxes are rounded
+/// outward from f64, so they always contain the primitives' own bounds.
 #[derive(Clone, Copy, Debug)]
-#[repr(C, align(128))]
+#[repr(C, align(64))]
 pub struct Node {
-    /// `bounds[2 * axis]` holds the four children's minima on `axis`, `bounds[2 * axis + 1]`
+    /// `bounds[2 * axis]` holds the children's minima on `axis`, `bounds[2 * axis + 1]`
     /// their maxima. Unused slots hold an empty box (min +∞, max −∞) that nothing hits.
-    pub bounds: [[f32; 4]; 6],
+    pub bounds: [[f32; WIDTH]; 6],
     /// Per child: the child node's index, or a leaf's first primitive slot.
-    pub index: [u32; 4],
+    pub index: [u32; WIDTH],
     /// Per child: 0 for an interior child (or an unused slot), else the leaf's primitive count.
-    pub count: [u32; 4],
+    pub count: [u32; WIDTH],
 }
 
 /// A BVH over primitives known only by their bounds; the owner intersects them through a
@@ -28,10 +33,10 @@ pub struct Bvh {
     pub(super) depth: usize,
 }
 
-/// The deepest binary tree the builder makes; a 4-wide node is never deeper.
+/// The deepest binary tree the builder makes; a wide node is never deeper.
 pub(super) const MAX_DEPTH: usize = 96;
-/// Each level of the 4-wide tree pushes at most three siblings.
-const STACK_DEPTH: usize = 3 * MAX_DEPTH;
+/// Each level of the wide tree pushes at most `WIDTH - 1` siblings.
+const STACK_DEPTH: usize = (WIDTH - 1) * MAX_DEPTH;
 /// Marks an unused child slot.
 pub(super) const NO_CHILD: u32 = u32::MAX;
 
@@ -68,10 +73,10 @@ impl Bvh {
         }
         match RayF32::new(ray) {
             Some(r) => {
-                self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| r.hit4(node, t_max))
+                self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| r.hit(node, t_max))
             }
             None => self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| {
-                hit4_f64(node, ray, t_max)
+                hit_f64(node, ray, t_max)
             }),
         }
     }
@@ -92,10 +97,10 @@ impl Bvh {
         }
         match RayF32::new(ray) {
             Some(r) => {
-                self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| r.hit4(node, t_max))
+                self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| r.hit(node, t_max))
             }
             None => self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| {
-                hit4_f64(node, ray, t_max)
+                hit_f64(node, ray, t_max)
             }),
         }
     }
@@ -109,7 +114,7 @@ impl Bvh {
         &self,
         t_max: &mut f64,
         mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
-        hit4: impl Fn(&Node, f64) -> (u32, [f32; 4]),
+        hit: impl Fn(&Node, f64) -> (u32, [f32; WIDTH]),
     ) -> bool {
         // Left uninitialised: zeroing it per query cost more than a whole traversal of a
         // ray that misses. Only slots below `top`, all written first, are ever read.
@@ -118,7 +123,7 @@ impl Bvh {
         let mut index = 0usize;
         loop {
             let node = &self.nodes[index];
-            let (mask, dist) = hit4(node, *t_max);
+            let (mask, dist) = hit(node, *t_max);
             let leaves = mask & leaf_mask(node);
             let mut inner = mask & !leaves;
             let mut m = leaves;
@@ -138,8 +143,8 @@ impl Bvh {
                 let mut near = (node.index[c], dist[c]);
                 prefetch(&self.nodes, near.0);
                 if inner != 0 {
-                    // Two to four interior children: push all but the nearest, farthest first.
-                    let mut rest = [(0u32, 0f32); 3];
+                    // Two or more interior children: push all but the nearest, farthest first.
+                    let mut rest = [(0u32, 0f32); WIDTH - 1];
                     let mut n = 0;
                     while inner != 0 {
                         let c = inner.trailing_zeros() as usize;
@@ -206,13 +211,14 @@ fn farther<const ORDER: u8>(a: f32, b: f32) -> bool {
 /// The slots of `node` that hold leaves.
 #[inline(always)]
 fn leaf_mask(node: &Node) -> u32 {
-    (node.count[0] > 0) as u32
-        | ((node.count[1] > 0) as u32) << 1
-        | ((node.count[2] > 0) as u32) << 2
-        | ((node.count[3] > 0) as u32) << 3
+    let mut mask = 0;
+    for c in 0..WIDTH {
+        mask |= ((node.count[c] > 0) as u32) << c;
+    }
+    mask
 }
 
-/// Starts fetching both cache lines of `nodes[index]` (a hint: an index out of range is
+/// Starts fetching the cache lines of `nodes[index]` (a hint: an index out of range is
 /// harmless, nothing is read).
 #[inline(always)]
 #[allow(unused_unsafe)]
@@ -223,8 +229,9 @@ fn prefetch(nodes: &[Node], index: u32) {
         let p = nodes.as_ptr().wrapping_add(index as usize) as *const i8;
         // SAFETY: prefetching never faults, whatever the address.
         unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(p);
-            _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64));
+            for line in 0..size_of::<Node>().div_ceil(64) {
+                _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64 * line));
+            }
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -277,49 +284,51 @@ impl RayF32 {
         Some(r)
     }
 
-    /// Hit mask and conservative entry distances of a node's four boxes.
+    /// Hit mask and conservative entry distances of a node's boxes, four at a time.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     #[allow(unused_unsafe)]
-    fn hit4(&self, node: &Node, t_max: f64) -> (u32, [f32; 4]) {
+    fn hit(&self, node: &Node, t_max: f64) -> (u32, [f32; WIDTH]) {
         use std::arch::x86_64::*;
-        // SAFETY: SSE is part of the x86_64 baseline; loads read 16 bytes from [f32; 4] rows.
+        let mut mask = 0;
+        let mut dist = [0f32; WIDTH];
+        // SAFETY: SSE is part of the x86_64 baseline; loads read 16 bytes from rows of
+        // `WIDTH` (a multiple of four) f32s at offsets `half`, `half + 4`, ….
         unsafe {
             let b = &node.bounds;
-            let plane = |row: usize, o: f32, inv: f32| {
-                _mm_mul_ps(
-                    _mm_sub_ps(_mm_loadu_ps(b[row].as_ptr()), _mm_set1_ps(o)),
-                    _mm_set1_ps(inv),
-                )
-            };
-            let nx = plane(self.near[0], self.o_near[0], self.inv[0]);
-            let ny = plane(self.near[1], self.o_near[1], self.inv[1]);
-            let nz = plane(self.near[2], self.o_near[2], self.inv[2]);
-            let fx = plane(self.far[0], self.o_far[0], self.inv[0]);
-            let fy = plane(self.far[1], self.o_far[1], self.inv[1]);
-            let fz = plane(self.far[2], self.o_far[2], self.inv[2]);
-            let near = _mm_max_ps(_mm_max_ps(nx, ny), _mm_max_ps(nz, _mm_setzero_ps()));
-            let far = _mm_min_ps(
-                _mm_min_ps(fx, fy),
-                _mm_min_ps(fz, _mm_set1_ps(t_max_f32(t_max))),
-            );
-            let near = _mm_mul_ps(near, _mm_set1_ps(SLAB_DOWN));
-            let far = _mm_add_ps(_mm_mul_ps(far, _mm_set1_ps(SLAB_UP)), _mm_set1_ps(SLAB_ABS));
-            let mask = _mm_movemask_ps(_mm_cmple_ps(near, far)) as u32;
-            let mut dist = [0f32; 4];
-            _mm_storeu_ps(dist.as_mut_ptr(), near);
-            (mask, dist)
+            let t_far = _mm_set1_ps(t_max_f32(t_max));
+            for half in (0..WIDTH).step_by(4) {
+                let plane = |row: usize, o: f32, inv: f32| {
+                    _mm_mul_ps(
+                        _mm_sub_ps(_mm_loadu_ps(b[row].as_ptr().add(half)), _mm_set1_ps(o)),
+                        _mm_set1_ps(inv),
+                    )
+                };
+                let nx = plane(self.near[0], self.o_near[0], self.inv[0]);
+                let ny = plane(self.near[1], self.o_near[1], self.inv[1]);
+                let nz = plane(self.near[2], self.o_near[2], self.inv[2]);
+                let fx = plane(self.far[0], self.o_far[0], self.inv[0]);
+                let fy = plane(self.far[1], self.o_far[1], self.inv[1]);
+                let fz = plane(self.far[2], self.o_far[2], self.inv[2]);
+                let near = _mm_max_ps(_mm_max_ps(nx, ny), _mm_max_ps(nz, _mm_setzero_ps()));
+                let far = _mm_min_ps(_mm_min_ps(fx, fy), _mm_min_ps(fz, t_far));
+                let near = _mm_mul_ps(near, _mm_set1_ps(SLAB_DOWN));
+                let far = _mm_add_ps(_mm_mul_ps(far, _mm_set1_ps(SLAB_UP)), _mm_set1_ps(SLAB_ABS));
+                mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << half;
+                _mm_storeu_ps(dist.as_mut_ptr().add(half), near);
+            }
         }
+        (mask, dist)
     }
 
     #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
-    fn hit4(&self, node: &Node, t_max: f64) -> (u32, [f32; 4]) {
+    fn hit(&self, node: &Node, t_max: f64) -> (u32, [f32; WIDTH]) {
         let b = &node.bounds;
         let t_max = t_max_f32(t_max);
         let mut mask = 0;
-        let mut dist = [0f32; 4];
-        for c in 0..4 {
+        let mut dist = [0f32; WIDTH];
+        for c in 0..WIDTH {
             let mut near = 0f32;
             let mut far = t_max;
             for a in 0..3 {
@@ -347,11 +356,11 @@ fn t_max_f32(t_max: f64) -> f32 {
 
 /// The slab test in f64 against a node's f32 boxes, for rays the f32 test cannot take.
 #[inline(always)]
-fn hit4_f64(node: &Node, ray: &Ray, t_max: f64) -> (u32, [f32; 4]) {
+fn hit_f64(node: &Node, ray: &Ray, t_max: f64) -> (u32, [f32; WIDTH]) {
     let b = &node.bounds;
     let mut mask = 0;
-    let mut dist = [0f32; 4];
-    for c in 0..4 {
+    let mut dist = [0f32; WIDTH];
+    for c in 0..WIDTH {
         if node.index[c] == NO_CHILD {
             continue;
         }
@@ -425,7 +434,7 @@ mod tests {
         bvh.nodes
             .iter()
             .flat_map(|n| {
-                (0..4).map(move |c| {
+                (0..WIDTH).map(move |c| {
                     let b = n.bounds;
                     let aabb = [b[0][c], b[2][c], b[4][c], b[1][c], b[3][c], b[5][c]];
                     (aabb, n.index[c], n.count[c])
