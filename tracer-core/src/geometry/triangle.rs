@@ -282,7 +282,7 @@ impl TriangleRayF32 {
 
 /// Calls `test` on each slot in `slots` whose triangle the f32 pre-test cannot rule out, in
 /// slot order, until it returns true (then returns true). `blocks[i]` holds slots 4i..4i+4,
-/// whose f64 corners `corners` holds (prefetched for the survivors before `test` runs).
+/// whose f64 corners `corners` holds (prefetched with the blocks, before the pre-test).
 #[inline(always)]
 pub fn any_candidate(
     blocks: &[TriangleBlock],
@@ -294,6 +294,11 @@ pub fn any_candidate(
     let first = slots.start / BLOCK;
     let leaf_blocks = &blocks[first..slots.end.div_ceil(BLOCK)];
     prefetch(leaf_blocks.as_ptr(), size_of_val(leaf_blocks));
+    // The f64 corners of the whole leaf too, now rather than for the pre-test's survivors
+    // once it is done: their load then overlaps the block's instead of following it (the
+    // two misses in a row were most of the leaf's time for incoherent rays).
+    let leaf_corners = &corners[slots.start..slots.end.min(corners.len())];
+    prefetch(leaf_corners.as_ptr(), size_of_val(leaf_corners));
     for (b, block) in leaf_blocks.iter().enumerate() {
         let base = (first + b) * BLOCK;
         // Lanes inside `slots`.
@@ -301,15 +306,6 @@ pub fn any_candidate(
         let hi = (slots.end - base).min(BLOCK);
         let lanes = ((1u32 << hi) - 1) & !((1u32 << lo) - 1);
         let mut mask = ray.may_hit(block) & lanes;
-        let mut m = mask;
-        while m != 0 {
-            let lane = m.trailing_zeros() as usize;
-            m &= m - 1;
-            prefetch(
-                corners.as_ptr().wrapping_add(base + lane),
-                size_of::<[DVec3; 3]>(),
-            );
-        }
         while mask != 0 {
             let lane = mask.trailing_zeros() as usize;
             mask &= mask - 1;
