@@ -73,6 +73,11 @@ impl Bvh {
         }
         match RayF32::new(ray) {
             Some(r) => {
+                #[cfg(target_arch = "x86_64")]
+                if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2.
+                    return unsafe { self.traverse_avx2::<NEAREST_FIRST>(&r, t_max, leaf) };
+                }
                 self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| r.hit(node, t_max))
             }
             None => self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| {
@@ -97,12 +102,37 @@ impl Bvh {
         }
         match RayF32::new(ray) {
             Some(r) => {
+                #[cfg(target_arch = "x86_64")]
+                if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU has AVX2.
+                    return unsafe { self.traverse_avx2::<FARTHEST_FIRST>(&r, t_max, leaf) };
+                }
                 self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| r.hit(node, t_max))
             }
             None => self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| {
                 hit_f64(node, ray, t_max)
             }),
         }
+    }
+
+    /// [`Bvh::traverse_with`] with the f32 box test eight lanes at a time, compiled for
+    /// AVX2 together with the caller's leaf test. Same arithmetic per lane as [`RayF32::hit`],
+    /// so the same nodes are visited in the same order.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn traverse_avx2<const ORDER: u8>(
+        &self,
+        r: &RayF32,
+        t_max: &mut f64,
+        leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+    ) -> bool {
+        // SAFETY: this function only runs where AVX2 is available.
+        self.traverse_with::<ORDER>(t_max, leaf, |node, t_max| unsafe {
+            r.hit_avx2(node, t_max)
+        })
     }
 
     /// The traversal loop, given a test that returns a node's hit mask and conservative
@@ -316,6 +346,61 @@ impl RayF32 {
                 let far = _mm_add_ps(_mm_mul_ps(far, _mm_set1_ps(SLAB_UP)), _mm_set1_ps(SLAB_ABS));
                 mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << half;
                 _mm_storeu_ps(dist.as_mut_ptr().add(half), near);
+            }
+        }
+        (mask, dist)
+    }
+
+    /// [`RayF32::hit`] eight boxes at a time (`WIDTH` a multiple of eight). Not itself an
+    /// AVX2 function but always inlined, so that in [`Bvh::traverse_avx2`] its intrinsics
+    /// inline too (an AVX2 function is not inlined into a caller without the feature, and
+    /// LLVM declined to inline it into the large traversal loop).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    #[allow(unused_unsafe)]
+    unsafe fn hit_avx2(&self, node: &Node, t_max: f64) -> (u32, [f32; WIDTH]) {
+        use std::arch::x86_64::*;
+        let mut mask = 0;
+        let mut dist = [0f32; WIDTH];
+        let b = &node.bounds;
+        // SAFETY: the caller guarantees AVX2.
+        let t_far = unsafe { _mm256_set1_ps(t_max_f32(t_max)) };
+        for half in (0..WIDTH).step_by(8) {
+            // SAFETY: 32-byte loads from rows of `WIDTH` (a multiple of eight) f32s at
+            // offsets `half`, `half + 8`, ….
+            let plane = |row: usize, o: f32, inv: f32| unsafe {
+                _mm256_mul_ps(
+                    _mm256_sub_ps(
+                        _mm256_loadu_ps(b[row].as_ptr().add(half)),
+                        _mm256_set1_ps(o),
+                    ),
+                    _mm256_set1_ps(inv),
+                )
+            };
+            let nx = plane(self.near[0], self.o_near[0], self.inv[0]);
+            let ny = plane(self.near[1], self.o_near[1], self.inv[1]);
+            let nz = plane(self.near[2], self.o_near[2], self.inv[2]);
+            let fx = plane(self.far[0], self.o_far[0], self.inv[0]);
+            let fy = plane(self.far[1], self.o_far[1], self.inv[1]);
+            let fz = plane(self.far[2], self.o_far[2], self.inv[2]);
+            // SAFETY: the caller guarantees AVX2; the store writes `dist`'s eight f32s at
+            // `half`.
+            unsafe {
+                let near = _mm256_max_ps(
+                    _mm256_max_ps(nx, ny),
+                    _mm256_max_ps(nz, _mm256_setzero_ps()),
+                );
+                let far = _mm256_min_ps(_mm256_min_ps(fx, fy), _mm256_min_ps(fz, t_far));
+                let near = _mm256_mul_ps(near, _mm256_set1_ps(SLAB_DOWN));
+                let far = _mm256_add_ps(
+                    _mm256_mul_ps(far, _mm256_set1_ps(SLAB_UP)),
+                    _mm256_set1_ps(SLAB_ABS),
+                );
+                mask |= (_mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32) << half;
+                _mm256_storeu_ps(dist.as_mut_ptr().add(half), near);
             }
         }
         (mask, dist)
@@ -594,6 +679,42 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_box_test_matches_the_sse_one() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let bvh = Bvh::build(&boxes(3000));
+        let mut state = 42u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut hits = 0;
+        for i in 0..2000 {
+            let origin = DVec3::new(next(), next(), next()) * 140.0 - 20.0;
+            let dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
+            let r = RayF32::new(&Ray::new(origin, dir)).expect("an f32-safe ray");
+            let t_max = if i % 2 == 0 { f64::INFINITY } else { 30.0 };
+            for node in &bvh.nodes {
+                let sse = r.hit(node, t_max);
+                // SAFETY: AVX2 was detected above.
+                let avx = unsafe { r.hit_avx2(node, t_max) };
+                assert_eq!(sse.0, avx.0);
+                for c in 0..WIDTH {
+                    if sse.0 & (1 << c) != 0 {
+                        assert_eq!(sse.1[c].to_bits(), avx.1[c].to_bits());
+                    }
+                }
+                hits += sse.0.count_ones();
+            }
+        }
+        assert!(hits > 1000, "{hits} box hits");
     }
 
     #[test]
