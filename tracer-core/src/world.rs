@@ -217,15 +217,46 @@ pub struct Hit {
 
 /// The geometry at a hit point: everything shading needs except the material's values.
 #[derive(Clone, Copy, Debug)]
-pub struct Patch {
+pub struct Patch<'a> {
     pub position: DVec3,
     /// Interpolated shading normal, unit length, pointing out of the surface as modelled.
     pub normal: DVec3,
     /// Geometric normal (same side as `normal`'s intent), for offsetting spawned rays.
     pub geometric_normal: DVec3,
     /// Texture coordinates at the hit.
-    pub uv: DVec2,
+    pub uv: Uv<'a>,
     pub material: MaterialAt,
+}
+
+/// Texture coordinates at a hit, worked out only where a texture is read: a sphere's take
+/// an arc tangent and an arc cosine, a mesh's three more loads, and most surfaces have no
+/// texture.
+#[derive(Clone, Copy, Debug)]
+pub enum Uv<'a> {
+    At(DVec2),
+    /// A sphere's unit local-space point ([`sphere_uv`]).
+    Sphere(DVec3),
+    /// A mesh triangle's corner coordinates, blended by barycentrics.
+    Mesh {
+        coords: &'a [DVec2],
+        corners: [u32; 3],
+        bary: [f64; 3],
+    },
+}
+
+impl Uv<'_> {
+    #[inline(always)]
+    pub fn get(self) -> DVec2 {
+        match self {
+            Uv::At(uv) => uv,
+            Uv::Sphere(unit) => sphere_uv(unit),
+            Uv::Mesh {
+                coords,
+                corners: [i0, i1, i2],
+                bary: [b0, b1, b2],
+            } => b0 * coords[i0 as usize] + b1 * coords[i1 as usize] + b2 * coords[i2 as usize],
+        }
+    }
 }
 
 /// Which material applies at a hit.
@@ -483,7 +514,7 @@ impl World {
     }
 
     /// Position, normals, texture coordinates and material at `hit`.
-    pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch {
+    pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch<'_> {
         let position = ray.at(hit.t);
         match self.objects[hit.object as usize] {
             Object::Sphere(i) => {
@@ -542,7 +573,7 @@ impl ObjectHit {
 }
 
 #[inline(always)]
-fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> Patch {
+fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> Patch<'static> {
     let local = xf.to_local.transform_point3(position) / radius;
     let unit = local.normalize_or_zero();
     let normal = xf.normal_to_world(unit);
@@ -550,13 +581,13 @@ fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> 
         position,
         normal,
         geometric_normal: normal,
-        uv: sphere_uv(unit),
+        uv: Uv::Sphere(unit),
         material: MaterialAt::One(material),
     }
 }
 
 #[inline(always)]
-fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch {
+fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch<'static> {
     let [b0, b1, b2] = bary;
     let [p0, p1, p2] = t.positions;
     let geometric = (p1 - p0).cross(p2 - p0).normalize_or_zero();
@@ -565,7 +596,7 @@ fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch {
         position,
         normal: interpolated.try_normalize().unwrap_or(geometric),
         geometric_normal: geometric,
-        uv: b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2],
+        uv: Uv::At(b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2]),
         material: MaterialAt::Blend {
             materials: t.materials,
             bary,
@@ -574,7 +605,13 @@ fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch {
 }
 
 #[inline(always)]
-fn model_patch(position: DVec3, xf: &Transform, mesh: &Mesh, material: u32, hit: &Hit) -> Patch {
+fn model_patch<'a>(
+    position: DVec3,
+    xf: &Transform,
+    mesh: &'a Mesh,
+    material: u32,
+    hit: &Hit,
+) -> Patch<'a> {
     let [b0, b1, b2] = hit.bary;
     let [i0, i1, i2] = mesh.indices[hit.prim as usize].map(|i| i as usize);
     let [p0, p1, p2] = mesh.corners[hit.prim as usize];
@@ -589,7 +626,11 @@ fn model_patch(position: DVec3, xf: &Transform, mesh: &Mesh, material: u32, hit:
             normal
         },
         geometric_normal: geometric,
-        uv: b0 * mesh.tex_coords[i0] + b1 * mesh.tex_coords[i1] + b2 * mesh.tex_coords[i2],
+        uv: Uv::Mesh {
+            coords: &mesh.tex_coords,
+            corners: mesh.indices[hit.prim as usize],
+            bary: hit.bary,
+        },
         material: MaterialAt::One(material),
     }
 }
