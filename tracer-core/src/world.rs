@@ -203,6 +203,26 @@ enum Object {
     Triangle(u32),
     Model(u32),
     Mover(u32),
+    /// One triangle of a small static model, in world space (see [`FLAT_MODEL_LIMIT`]).
+    ModelTriangle(u32),
+}
+
+/// Static models whose mesh has at most this many triangles are not instanced: their
+/// triangles join the top-level BVH in world space. Entering an instance (taking the ray to
+/// local space, setting up its triangle test and traversing the mesh's BVH) cost ~500
+/// instructions per model a ray meets, more than testing a few world-space triangles; the
+/// course's cubes (12 triangles) are the case. t and the barycentrics then come from the
+/// world-space corners, equal to the local-space ones up to rounding (barycentrics are
+/// invariant under affine maps); shading still reads the mesh through the model.
+pub const FLAT_MODEL_LIMIT: usize = 32;
+
+/// A triangle of a flattened model: its world-space corners, the model, and its slot in
+/// the mesh.
+#[derive(Clone, Copy, Debug)]
+struct ModelTriangle {
+    corners: [DVec3; 3],
+    model: u32,
+    prim: u32,
 }
 
 /// The closest intersection found along a ray.
@@ -278,6 +298,7 @@ pub struct World {
     /// Times (in frames) the movers' bounds cover.
     pub time_span: (f64, f64),
     objects: Vec<Object>,
+    model_triangles: Vec<ModelTriangle>,
     top: Bvh,
 }
 
@@ -302,9 +323,27 @@ impl World {
             objects.push(Object::Triangle(i as u32));
             bounds.push(Aabb::from_points(&t.positions));
         }
+        let mut model_triangles = Vec::new();
         for (i, m) in models.iter().enumerate() {
+            let mesh = &meshes[m.mesh as usize];
+            let live =
+                || (0..mesh.indices.len()).filter(|&slot| mesh.indices[slot] != PADDING_TRIANGLE);
+            if live().count() <= FLAT_MODEL_LIMIT {
+                for slot in live() {
+                    let corners =
+                        mesh.corners[slot].map(|c| m.transform.to_world.transform_point3(c));
+                    objects.push(Object::ModelTriangle(model_triangles.len() as u32));
+                    bounds.push(Aabb::from_points(&corners));
+                    model_triangles.push(ModelTriangle {
+                        corners,
+                        model: i as u32,
+                        prim: slot as u32,
+                    });
+                }
+                continue;
+            }
             objects.push(Object::Model(i as u32));
-            let local = meshes[m.mesh as usize].bvh.bounds();
+            let local = mesh.bvh.bounds();
             bounds.push(m.transform.bounds_to_world(local));
         }
         for (i, m) in movers.iter().enumerate() {
@@ -321,6 +360,7 @@ impl World {
             movers,
             time_span,
             objects,
+            model_triangles,
             top,
         }
     }
@@ -458,6 +498,16 @@ impl World {
                 found
             }
             Object::Mover(i) => self.hit_mover::<ANY>(i, ray, t_min, t_max),
+            Object::ModelTriangle(i) => {
+                let t = &self.model_triangles[i as usize];
+                let [a, b, c] = t.corners;
+                let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
+                intersect_triangle(tri_ray, a, b, c, t_min, t_max).map(|h| ObjectHit {
+                    t: h.t,
+                    prim: t.prim,
+                    bary: h.bary,
+                })
+            }
         }
     }
 
@@ -524,6 +574,12 @@ impl World {
             Object::Triangle(i) => triangle_patch(position, &self.triangles[i as usize], hit.bary),
             Object::Model(i) => {
                 let model = &self.models[i as usize];
+                let mesh = &self.meshes[model.mesh as usize];
+                model_patch(position, &model.transform, mesh, model.material, hit)
+            }
+            Object::ModelTriangle(i) => {
+                // `hit.prim` is the triangle's slot in its mesh, as for an instanced model.
+                let model = &self.models[self.model_triangles[i as usize].model as usize];
                 let mesh = &self.meshes[model.mesh as usize];
                 model_patch(position, &model.transform, mesh, model.material, hit)
             }
