@@ -2,7 +2,7 @@
 //! top-level BVH, with closest-hit, any-hit and surface-geometry queries. Objects carry
 //! material indices only; what a material looks like is `shade::material`'s business.
 
-use glam::{DVec2, DVec3};
+use glam::{DMat3, DVec2, DVec3};
 
 use crate::accel::{Bvh, PADDING};
 use crate::geometry::{
@@ -200,9 +200,31 @@ impl Mover {
 #[derive(Clone, Copy, Debug)]
 enum Object {
     Sphere(u32),
+    /// A sphere whose transform only translates (no rotation, unit scale: the course's).
+    TranslatedSphere(u32),
     Triangle(u32),
     Model(u32),
     Mover(u32),
+    /// One triangle of a small static model, in world space (see [`FLAT_MODEL_LIMIT`]).
+    ModelTriangle(u32),
+}
+
+/// Static models whose mesh has at most this many triangles are not instanced: their
+/// triangles join the top-level BVH in world space. Entering an instance (taking the ray to
+/// local space, setting up its triangle test and traversing the mesh's BVH) cost ~500
+/// instructions per model a ray meets, more than testing a few world-space triangles; the
+/// course's cubes (12 triangles) are the case. t and the barycentrics then come from the
+/// world-space corners, equal to the local-space ones up to rounding (barycentrics are
+/// invariant under affine maps); shading still reads the mesh through the model.
+pub const FLAT_MODEL_LIMIT: usize = 32;
+
+/// A triangle of a flattened model: its world-space corners, the model, and its slot in
+/// the mesh.
+#[derive(Clone, Copy, Debug)]
+struct ModelTriangle {
+    corners: [DVec3; 3],
+    model: u32,
+    prim: u32,
 }
 
 /// The closest intersection found along a ray.
@@ -217,15 +239,46 @@ pub struct Hit {
 
 /// The geometry at a hit point: everything shading needs except the material's values.
 #[derive(Clone, Copy, Debug)]
-pub struct Patch {
+pub struct Patch<'a> {
     pub position: DVec3,
     /// Interpolated shading normal, unit length, pointing out of the surface as modelled.
     pub normal: DVec3,
     /// Geometric normal (same side as `normal`'s intent), for offsetting spawned rays.
     pub geometric_normal: DVec3,
     /// Texture coordinates at the hit.
-    pub uv: DVec2,
+    pub uv: Uv<'a>,
     pub material: MaterialAt,
+}
+
+/// Texture coordinates at a hit, worked out only where a texture is read: a sphere's take
+/// an arc tangent and an arc cosine, a mesh's three more loads, and most surfaces have no
+/// texture.
+#[derive(Clone, Copy, Debug)]
+pub enum Uv<'a> {
+    At(DVec2),
+    /// A sphere's unit local-space point ([`sphere_uv`]).
+    Sphere(DVec3),
+    /// A mesh triangle's corner coordinates, blended by barycentrics.
+    Mesh {
+        coords: &'a [DVec2],
+        corners: [u32; 3],
+        bary: [f64; 3],
+    },
+}
+
+impl Uv<'_> {
+    #[inline(always)]
+    pub fn get(self) -> DVec2 {
+        match self {
+            Uv::At(uv) => uv,
+            Uv::Sphere(unit) => sphere_uv(unit),
+            Uv::Mesh {
+                coords,
+                corners: [i0, i1, i2],
+                bary: [b0, b1, b2],
+            } => b0 * coords[i0 as usize] + b1 * coords[i1 as usize] + b2 * coords[i2 as usize],
+        }
+    }
 }
 
 /// Which material applies at a hit.
@@ -247,6 +300,7 @@ pub struct World {
     /// Times (in frames) the movers' bounds cover.
     pub time_span: (f64, f64),
     objects: Vec<Object>,
+    model_triangles: Vec<ModelTriangle>,
     top: Bvh,
 }
 
@@ -263,7 +317,11 @@ impl World {
         let mut objects = Vec::new();
         let mut bounds = Vec::new();
         for (i, s) in spheres.iter().enumerate() {
-            objects.push(Object::Sphere(i as u32));
+            objects.push(if s.transform.to_local.matrix3 == DMat3::IDENTITY {
+                Object::TranslatedSphere(i as u32)
+            } else {
+                Object::Sphere(i as u32)
+            });
             let r = DVec3::splat(s.radius);
             bounds.push(s.transform.bounds_to_world(Aabb { min: -r, max: r }));
         }
@@ -271,9 +329,27 @@ impl World {
             objects.push(Object::Triangle(i as u32));
             bounds.push(Aabb::from_points(&t.positions));
         }
+        let mut model_triangles = Vec::new();
         for (i, m) in models.iter().enumerate() {
+            let mesh = &meshes[m.mesh as usize];
+            let live =
+                || (0..mesh.indices.len()).filter(|&slot| mesh.indices[slot] != PADDING_TRIANGLE);
+            if live().count() <= FLAT_MODEL_LIMIT {
+                for slot in live() {
+                    let corners =
+                        mesh.corners[slot].map(|c| m.transform.to_world.transform_point3(c));
+                    objects.push(Object::ModelTriangle(model_triangles.len() as u32));
+                    bounds.push(Aabb::from_points(&corners));
+                    model_triangles.push(ModelTriangle {
+                        corners,
+                        model: i as u32,
+                        prim: slot as u32,
+                    });
+                }
+                continue;
+            }
             objects.push(Object::Model(i as u32));
-            let local = meshes[m.mesh as usize].bvh.bounds();
+            let local = mesh.bvh.bounds();
             bounds.push(m.transform.bounds_to_world(local));
         }
         for (i, m) in movers.iter().enumerate() {
@@ -290,6 +366,7 @@ impl World {
             movers,
             time_span,
             objects,
+            model_triangles,
             top,
         }
     }
@@ -387,6 +464,15 @@ impl World {
                 intersect_unit_sphere_scaled(local.origin, local.dir, s.radius, t_min, t_max)
                     .map(ObjectHit::at)
             }
+            Object::TranslatedSphere(i) => {
+                // The affine map multiplies by exact ones and zeros here, so the shifted ray
+                // is the local ray it computes (up to the sign of a zero), at 3 additions
+                // instead of 33 operations.
+                let s = &self.spheres[i as usize];
+                let origin = ray.origin + s.transform.to_local.translation;
+                intersect_unit_sphere_scaled(origin, ray.dir, s.radius, t_min, t_max)
+                    .map(ObjectHit::at)
+            }
             Object::Triangle(i) => {
                 let [a, b, c] = self.triangles[i as usize].positions;
                 let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
@@ -427,6 +513,16 @@ impl World {
                 found
             }
             Object::Mover(i) => self.hit_mover::<ANY>(i, ray, t_min, t_max),
+            Object::ModelTriangle(i) => {
+                let t = &self.model_triangles[i as usize];
+                let [a, b, c] = t.corners;
+                let tri_ray = world_tri_ray.get_or_insert_with(|| TriangleRay::new(ray));
+                intersect_triangle(tri_ray, a, b, c, t_min, t_max).map(|h| ObjectHit {
+                    t: h.t,
+                    prim: t.prim,
+                    bary: h.bary,
+                })
+            }
         }
     }
 
@@ -483,16 +579,22 @@ impl World {
     }
 
     /// Position, normals, texture coordinates and material at `hit`.
-    pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch {
+    pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch<'_> {
         let position = ray.at(hit.t);
         match self.objects[hit.object as usize] {
-            Object::Sphere(i) => {
+            Object::Sphere(i) | Object::TranslatedSphere(i) => {
                 let s = &self.spheres[i as usize];
                 sphere_patch(position, &s.transform, s.radius, s.material)
             }
             Object::Triangle(i) => triangle_patch(position, &self.triangles[i as usize], hit.bary),
             Object::Model(i) => {
                 let model = &self.models[i as usize];
+                let mesh = &self.meshes[model.mesh as usize];
+                model_patch(position, &model.transform, mesh, model.material, hit)
+            }
+            Object::ModelTriangle(i) => {
+                // `hit.prim` is the triangle's slot in its mesh, as for an instanced model.
+                let model = &self.models[self.model_triangles[i as usize].model as usize];
                 let mesh = &self.meshes[model.mesh as usize];
                 model_patch(position, &model.transform, mesh, model.material, hit)
             }
@@ -542,7 +644,7 @@ impl ObjectHit {
 }
 
 #[inline(always)]
-fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> Patch {
+fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> Patch<'static> {
     let local = xf.to_local.transform_point3(position) / radius;
     let unit = local.normalize_or_zero();
     let normal = xf.normal_to_world(unit);
@@ -550,13 +652,13 @@ fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> 
         position,
         normal,
         geometric_normal: normal,
-        uv: sphere_uv(unit),
+        uv: Uv::Sphere(unit),
         material: MaterialAt::One(material),
     }
 }
 
 #[inline(always)]
-fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch {
+fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch<'static> {
     let [b0, b1, b2] = bary;
     let [p0, p1, p2] = t.positions;
     let geometric = (p1 - p0).cross(p2 - p0).normalize_or_zero();
@@ -565,7 +667,7 @@ fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch {
         position,
         normal: interpolated.try_normalize().unwrap_or(geometric),
         geometric_normal: geometric,
-        uv: b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2],
+        uv: Uv::At(b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2]),
         material: MaterialAt::Blend {
             materials: t.materials,
             bary,
@@ -574,7 +676,13 @@ fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch {
 }
 
 #[inline(always)]
-fn model_patch(position: DVec3, xf: &Transform, mesh: &Mesh, material: u32, hit: &Hit) -> Patch {
+fn model_patch<'a>(
+    position: DVec3,
+    xf: &Transform,
+    mesh: &'a Mesh,
+    material: u32,
+    hit: &Hit,
+) -> Patch<'a> {
     let [b0, b1, b2] = hit.bary;
     let [i0, i1, i2] = mesh.indices[hit.prim as usize].map(|i| i as usize);
     let [p0, p1, p2] = mesh.corners[hit.prim as usize];
@@ -589,7 +697,11 @@ fn model_patch(position: DVec3, xf: &Transform, mesh: &Mesh, material: u32, hit:
             normal
         },
         geometric_normal: geometric,
-        uv: b0 * mesh.tex_coords[i0] + b1 * mesh.tex_coords[i1] + b2 * mesh.tex_coords[i2],
+        uv: Uv::Mesh {
+            coords: &mesh.tex_coords,
+            corners: mesh.indices[hit.prim as usize],
+            bary: hit.bary,
+        },
         material: MaterialAt::One(material),
     }
 }

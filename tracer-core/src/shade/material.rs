@@ -1,10 +1,10 @@
 //! Materials and what they look like at a hit: the world says where a ray landed and which
 //! material applies; this adds the material's colours and its texture's colour there.
 
-use glam::{DVec2, DVec3};
+use glam::DVec3;
 
 use crate::texture::{Texture, TextureFilter};
-use crate::world::{MaterialAt, Patch};
+use crate::world::{MaterialAt, Patch, Uv};
 
 #[derive(Clone, Debug)]
 pub struct Material {
@@ -74,26 +74,49 @@ impl Materials<'_> {
     fn blend(&self, patch: &Patch, materials: [u32; 3], bary: [f64; 3]) -> Surface {
         let [b0, b1, b2] = bary;
         let ms = materials.map(|m| &self.materials[m as usize]);
-        let blend = |f: &dyn Fn(&Material) -> DVec3| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
-        let scalar = |f: &dyn Fn(&Material) -> f64| b0 * f(ms[0]) + b1 * f(ms[1]) + b2 * f(ms[2]);
-        let ior = scalar(&|m| m.ior);
+        // Plain functions rather than `&dyn Fn`: these run at every scene-triangle hit.
+        #[inline(always)]
+        fn blend3(b: [f64; 3], v: [DVec3; 3]) -> DVec3 {
+            b[0] * v[0] + b[1] * v[1] + b[2] * v[2]
+        }
+        #[inline(always)]
+        fn scalar3(b: [f64; 3], v: [f64; 3]) -> f64 {
+            b[0] * v[0] + b[1] * v[1] + b[2] * v[2]
+        }
+        let ior = scalar3(bary, ms.map(|m| m.ior));
+        // A vertex sharing the previous vertex's material reuses its texture sample (the same
+        // value, so the blend is unchanged): scene triangles mostly carry one material, and a
+        // texture look-up costs more than the rest of the blend.
+        let t0 = self.texture(ms[0], patch.uv);
+        let t1 = if materials[1] == materials[0] {
+            t0
+        } else {
+            self.texture(ms[1], patch.uv)
+        };
+        let t2 = if materials[2] == materials[1] {
+            t1
+        } else if materials[2] == materials[0] {
+            t0
+        } else {
+            self.texture(ms[2], patch.uv)
+        };
         Surface {
             position: patch.position,
             normal: patch.normal,
             geometric_normal: patch.geometric_normal,
-            ambient: blend(&|m| m.ambient),
-            diffuse: blend(&|m| m.diffuse),
-            specular: blend(&|m| m.specular),
+            ambient: blend3(bary, ms.map(|m| m.ambient)),
+            diffuse: blend3(bary, ms.map(|m| m.diffuse)),
+            specular: blend3(bary, ms.map(|m| m.specular)),
             ior,
-            texture: blend(&|m| self.texture(m, patch.uv)),
+            texture: b0 * t0 + b1 * t1 + b2 * t2,
             // The effects' blends only where a vertex material uses them.
             glossiness: if ms.iter().any(|m| m.glossiness != 0.0) {
-                scalar(&|m| m.glossiness)
+                scalar3(bary, ms.map(|m| m.glossiness))
             } else {
                 0.0
             },
             absorption: if ior != 0.0 {
-                blend(&|m| m.absorption)
+                blend3(bary, ms.map(|m| m.absorption))
             } else {
                 DVec3::ZERO
             },
@@ -101,9 +124,9 @@ impl Materials<'_> {
     }
 
     #[inline(always)]
-    fn texture(&self, material: &Material, uv: DVec2) -> DVec3 {
+    fn texture(&self, material: &Material, uv: Uv) -> DVec3 {
         match material.texture {
-            Some(t) => self.textures[t as usize].sample(uv, self.filter),
+            Some(t) => self.textures[t as usize].sample(uv.get(), self.filter),
             None => DVec3::ONE,
         }
     }

@@ -82,6 +82,9 @@ pub struct Tracer<'a> {
     counts: RayCounts,
     /// The sample's glossy-lobe stream (see [`crate::sampler::Stream::Gloss`]).
     gloss_rng: Rng,
+    /// The camera's medium, where every eye ray starts (built once: the stack is ~0.5 kB,
+    /// so rays pass it by reference and only a refraction copies it).
+    outer: std::rc::Rc<MediumStack>,
 }
 
 impl<'a> Tracer<'a> {
@@ -91,6 +94,7 @@ impl<'a> Tracer<'a> {
             max_depth,
             counts: RayCounts::default(),
             gloss_rng: Rng::for_sample(0, 0, 0, 0),
+            outer: std::rc::Rc::new(MediumStack::new(stage.outer_ior)),
         }
     }
 
@@ -109,8 +113,8 @@ impl<'a> Tracer<'a> {
             self.gloss_rng = gloss;
         }
         self.counts = RayCounts::default();
-        let outer = MediumStack::new(self.stage.outer_ior);
-        let color = self.radiance(ray, near, far, 0, outer, rng);
+        let outer = std::rc::Rc::clone(&self.outer);
+        let color = self.radiance(ray, near, far, 0, &outer, rng);
         (color, self.counts)
     }
 
@@ -122,7 +126,7 @@ impl<'a> Tracer<'a> {
         t_min: f64,
         t_max: f64,
         level: u32,
-        media: MediumStack,
+        media: &MediumStack,
         rng: &mut Rng,
     ) -> DVec3 {
         let absorption = media.absorption();
@@ -143,7 +147,7 @@ impl<'a> Tracer<'a> {
         t_min: f64,
         t_max: f64,
         level: u32,
-        media: MediumStack,
+        media: &MediumStack,
         rng: &mut Rng,
     ) -> (DVec3, f64) {
         if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
@@ -161,7 +165,7 @@ impl<'a> Tracer<'a> {
         ray: &Ray,
         hit: &Hit,
         level: u32,
-        media: MediumStack,
+        media: &MediumStack,
         rng: &mut Rng,
     ) -> DVec3 {
         let stage = self.stage;
@@ -193,7 +197,7 @@ impl<'a> Tracer<'a> {
             return color;
         }
 
-        let crossing = Crossing::new(media, s.normal, d, s.ior, s.absorption);
+        let crossing = Crossing::new(*media, s.normal, d, s.ior, s.absorption);
         let reflectance = crossing.reflectance;
         let tint = s.texture * s.specular;
         let mut color = DVec3::ZERO;
@@ -219,7 +223,7 @@ impl<'a> Tracer<'a> {
                         0.0,
                         f64::INFINITY,
                         level + 1,
-                        crossing.beyond,
+                        &crossing.beyond,
                         rng,
                     );
             }
