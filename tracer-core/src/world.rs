@@ -590,7 +590,11 @@ fn model_patch(position: DVec3, xf: &Transform, mesh: &Mesh, material: u32, hit:
         },
         geometric_normal: geometric,
         uv: corner_lerp(
-            [mesh.tex_coords[i0], mesh.tex_coords[i1], mesh.tex_coords[i2]],
+            [
+                mesh.tex_coords[i0],
+                mesh.tex_coords[i1],
+                mesh.tex_coords[i2],
+            ],
             b1,
             b2,
         ),
@@ -598,11 +602,12 @@ fn model_patch(position: DVec3, xf: &Transform, mesh: &Mesh, material: u32, hit:
     }
 }
 
-/// The attribute at barycentrics (1 − b1 − b2, b1, b2) of the corners `c`, as c0 + b1·(c1 − c0)
-/// + b2·(c2 − c0): exact where the corners agree, whatever the barycentrics' rounding. (A
-/// mesh giving every corner the one texture coordinate (0, 1), like the course's toy plane,
-/// would otherwise sample either side of the texture's wrap seam as b0 + b1 + b2 rounds to
-/// either side of 1, and its image would change with the scene's scale and position.)
+/// The attribute at barycentrics (1 − b1 − b2, b1, b2) of the corners `c`, interpolated as
+/// c0 plus b1·(c1 − c0) plus b2·(c2 − c0): exact where the corners agree, whatever the
+/// barycentrics' rounding. (A mesh giving every corner the one texture coordinate (0, 1),
+/// like the course's toy plane, would otherwise sample either side of the texture's wrap seam
+/// as b0 + b1 + b2 rounds to either side of 1, and its image would change with the scene's
+/// scale and position.)
 #[inline(always)]
 fn corner_lerp(c: [DVec2; 3], b1: f64, b2: f64) -> DVec2 {
     c[0] + b1 * (c[1] - c[0]) + b2 * (c[2] - c[0])
