@@ -12,6 +12,7 @@ use crate::sampler::{uniform_sphere, Rng};
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use crate::shade::{spawn_ray, Surface};
+use crate::world::{Mesh, World};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchReport {
@@ -20,6 +21,9 @@ pub struct BenchReport {
     pub incoherent_mrays: f64,
     pub shadow_mrays: f64,
     pub render_s: f64,
+    /// Memory of the meshes' geometry and BVHs per mesh triangle ([`mesh_bytes`]); each
+    /// mesh counted once however many models instance it. 0 without meshes.
+    pub bytes_per_triangle: f64,
     #[serde(skip)]
     pub primary_rays: usize,
     #[serde(skip)]
@@ -185,9 +189,37 @@ pub fn run(
         incoherent_mrays: mrays(rays.incoherent.len(), incoherent_time),
         shadow_mrays: shadow_time.map_or(0.0, |t| mrays(rays.shadow.len(), t)),
         render_s: render.as_secs_f64(),
+        bytes_per_triangle: bytes_per_triangle(&scene.world),
         primary_rays: rays.primary.len(),
         secondary_rays: rays.incoherent.len(),
     })
+}
+
+/// Bytes the meshes of `world` hold, per mesh triangle (0 without meshes).
+fn bytes_per_triangle(world: &World) -> f64 {
+    // Padding slots (indices u32::MAX) fill leaf blocks; they are memory, not triangles.
+    let triangles = world
+        .meshes
+        .iter()
+        .flat_map(|m| &m.indices)
+        .filter(|t| t[0] != u32::MAX)
+        .count();
+    if triangles == 0 {
+        return 0.0;
+    }
+    world.meshes.iter().map(mesh_bytes).sum::<usize>() as f64 / triangles as f64
+}
+
+/// The heap bytes of one mesh: its triangles' corners, vertex indices, normals, texture
+/// coordinates, f32 triangle blocks and BVH (nodes and leaf order), as stored.
+pub fn mesh_bytes(mesh: &Mesh) -> usize {
+    size_of_val(&mesh.corners[..])
+        + size_of_val(&mesh.indices[..])
+        + size_of_val(&mesh.normals[..])
+        + size_of_val(&mesh.tex_coords[..])
+        + size_of_val(&mesh.blocks[..])
+        + size_of_val(&mesh.bvh.nodes[..])
+        + size_of_val(&mesh.bvh.order[..])
 }
 
 /// Traces `measure`'s rays in parallel, [`CHUNK`] rays per rayon job.

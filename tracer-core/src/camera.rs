@@ -112,6 +112,8 @@ pub struct EyeSample {
 #[derive(Clone, Debug)]
 pub struct EyeRays<'a> {
     desc: &'a CameraDesc,
+    /// The world point the scene is built around; cameras are placed relative to it.
+    origin: DVec3,
     camera: Camera,
     width: u32,
     height: u32,
@@ -136,12 +138,16 @@ impl<'a> EyeRays<'a> {
         let time_open = settings.frame as f64 + desc.shutter[0];
         let shutter_length = desc.shutter[1] - desc.shutter[0];
         let moving = shutter_length > 0.0 && scene.description.has_motion();
-        let mut camera = camera_at(desc, settings.width, settings.height, time_open);
+        let origin = scene.origin();
+        let mut camera = camera_at(desc, origin, settings.width, settings.height, time_open);
         if let Some(o) = &settings.camera {
+            // Look-at points are world points: only the position moves with the frame.
             camera = camera.with_override(o);
+            camera.position -= origin;
         }
         Self {
             desc,
+            origin,
             camera,
             width: settings.width,
             height: settings.height,
@@ -186,7 +192,7 @@ impl<'a> EyeRays<'a> {
         };
         let moved;
         let camera = if self.camera_moves {
-            moved = camera_at(self.desc, self.width, self.height, time);
+            moved = camera_at(self.desc, self.origin, self.width, self.height, time);
             &moved
         } else {
             &self.camera
@@ -213,11 +219,12 @@ impl<'a> EyeRays<'a> {
     }
 }
 
-/// The scene's camera at `time`, before any override, for a `width`×`height` image.
-fn camera_at(desc: &CameraDesc, width: u32, height: u32, time: f64) -> Camera {
+/// The scene's camera at `time`, before any override, for a `width`×`height` image, placed
+/// relative to the world point `origin`.
+fn camera_at(desc: &CameraDesc, origin: DVec3, width: u32, height: u32, time: f64) -> Camera {
     let (position, orientation) = desc.at(time);
     Camera::from_orientation(
-        position,
+        position - origin,
         orientation,
         desc.fov,
         desc.near_clip.max(0.0),

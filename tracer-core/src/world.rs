@@ -275,8 +275,12 @@ impl Uv<'_> {
             Uv::Mesh {
                 coords,
                 corners: [i0, i1, i2],
-                bary: [b0, b1, b2],
-            } => b0 * coords[i0 as usize] + b1 * coords[i1 as usize] + b2 * coords[i2 as usize],
+                bary: [_, b1, b2],
+            } => corner_lerp(
+                [coords[i0 as usize], coords[i1 as usize], coords[i2 as usize]],
+                b1,
+                b2,
+            ),
         }
     }
 }
@@ -667,7 +671,7 @@ fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch<'
         position,
         normal: interpolated.try_normalize().unwrap_or(geometric),
         geometric_normal: geometric,
-        uv: Uv::At(b0 * t.tex_coords[0] + b1 * t.tex_coords[1] + b2 * t.tex_coords[2]),
+        uv: Uv::At(corner_lerp(t.tex_coords, b1, b2)),
         material: MaterialAt::Blend {
             materials: t.materials,
             bary,
@@ -704,6 +708,17 @@ fn model_patch<'a>(
         },
         material: MaterialAt::One(material),
     }
+}
+
+/// The attribute at barycentrics (1 − b1 − b2, b1, b2) of the corners `c`, interpolated as
+/// c0 plus b1·(c1 − c0) plus b2·(c2 − c0): exact where the corners agree, whatever the
+/// barycentrics' rounding. (A mesh giving every corner the one texture coordinate (0, 1),
+/// like the course's toy plane, would otherwise sample either side of the texture's wrap seam
+/// as b0 + b1 + b2 rounds to either side of 1, and its image would change with the scene's
+/// scale and position.)
+#[inline(always)]
+fn corner_lerp(c: [DVec2; 3], b1: f64, b2: f64) -> DVec2 {
+    c[0] + b1 * (c[1] - c[0]) + b2 * (c[2] - c[0])
 }
 
 /// Latitude/longitude mapping of conventions §6 for a unit local-space point: u grows from

@@ -167,7 +167,8 @@ fn a_mirror_lights_the_floor_like_the_mirrored_lamp() {
             radius: Some(0.25),
         };
         let map = CausticMap::build(&scene, &params, 1, TextureFilter::Nearest);
-        let e = map.irradiance(p, DVec3::Y).x;
+        // The map is in the scene's frame, relative to its origin (the eye).
+        let e = map.irradiance(p - scene.origin(), DVec3::Y).x;
         let d = (image - p).length();
         let [a_c, a_l, a_q] = attenuation;
         let direct = 0.8 / (a_c + a_l * d + a_q * d * d) * (image.y / d);
@@ -209,7 +210,7 @@ fn caustic_energy_stays_within_the_light_through_the_ball() {
     for i in -150..150 {
         for j in -150..150 {
             let p = DVec3::new((i as f64 + 0.5) * step, 0.0, (j as f64 + 0.5) * step);
-            integral += map.irradiance(p, DVec3::Y).x * step * step;
+            integral += map.irradiance(p - scene.origin(), DVec3::Y).x * step * step;
         }
     }
     assert!(

@@ -2,7 +2,7 @@
 //! panic and bounded work, or is rejected at load. docs/numerics.md describes each case.
 
 use glam::DVec3;
-use tracer_core::geometry::{Ray, Transform};
+use tracer_core::geometry::{Motion, Ray, Transform};
 use tracer_core::scene::SceneDescription;
 use tracer_core::shade::RAY_BUDGET_PER_SAMPLE;
 use tracer_core::{CameraOverride, FsAssets, Image, MemoryAssets, RenderSettings, Renderer, Scene};
@@ -69,33 +69,60 @@ fn a_zero_scale_is_rejected_at_load() {
     assert_eq!((err.line, err.column), (24, 70), "{err}");
 }
 
-/// The base scene scaled about the origin by `scale`, then moved by `offset`.
+/// Any scene description scaled about the world origin by `scale`, then moved by `offset`:
+/// positions, radii, model and triangle scales, clip planes, lens, light sizes, keyed motion,
+/// velocities, absorption and the caustic gather radius, with attenuation rescaled so that
+/// 1/(a_c + a_l·d + a_q·d²) is the same at the scaled distances. The image must not change.
 fn transformed(desc: &SceneDescription, scale: f64, offset: DVec3) -> SceneDescription {
     let mut d = desc.clone();
     let place = |p: DVec3| p * scale + offset;
-    d.camera.position = place(d.camera.position);
-    d.camera.near_clip *= scale;
-    d.camera.far_clip *= scale;
+    let place_motion = |m: &mut Motion| {
+        for key in &mut m.keys {
+            key.transform.position = place(key.transform.position);
+        }
+        m.velocity *= scale;
+    };
+    let c = &mut d.camera;
+    c.position = place(c.position);
+    c.near_clip *= scale;
+    c.far_clip *= scale;
+    c.aperture *= scale;
+    c.focus_distance *= scale;
+    for key in &mut c.focus_keys {
+        key.1 *= scale;
+    }
+    place_motion(&mut c.motion);
     for l in &mut d.lights {
         l.position = place(l.position);
         l.radius *= scale;
-        // Keep 1/(a_c + a_l·d + a_q·d²) the same at scaled distances.
         l.attenuation[1] /= scale;
         l.attenuation[2] /= scale * scale;
+    }
+    for m in &mut d.materials {
+        m.absorption /= scale;
     }
     for s in &mut d.spheres {
         s.transform.position = place(s.transform.position);
         s.radius *= scale;
+        place_motion(&mut s.motion);
     }
     for t in &mut d.triangles {
         t.transform.position = place(t.transform.position);
         for v in &mut t.vertices {
             v.position *= scale;
         }
+        place_motion(&mut t.motion);
     }
     for m in &mut d.models {
         m.transform.position = place(m.transform.position);
         m.transform.scale *= scale;
+        for key in &mut m.motion.keys {
+            key.transform.scale *= scale;
+        }
+        place_motion(&mut m.motion);
+    }
+    if let Some(radius) = d.caustics.as_mut().and_then(|c| c.radius.as_mut()) {
+        *radius *= scale;
     }
     d
 }
@@ -136,6 +163,47 @@ fn scaling_and_translating_the_scene_keeps_the_image() {
     }
 }
 
+/// The course scenes themselves, moved 1e7 away and shrunk to 1e-5 of their size 1e3 away
+/// from the world origin (where f64 keeps about 1e-8 of the scene's size and f32 boxes about
+/// 1e-2): rendering relative to the eye keeps their images. Same tolerance as above.
+#[test]
+fn course_scenes_keep_their_image_far_away_and_tiny() {
+    let (w, h) = (160, 120);
+    let s = settings(w, h, 4);
+    let allowed = (w * h) as usize / 200;
+    for name in [
+        "test",
+        "spheres",
+        "tetrahedron",
+        "stacks",
+        "cube",
+        "cornell_box",
+        "dragon",
+        "toy",
+    ] {
+        let path = common::course(&format!("{name}.scene"));
+        let text = std::fs::read_to_string(&path).unwrap();
+        let base = SceneDescription::parse(&text, name).unwrap();
+        let assets = FsAssets::for_scene(&path);
+        let reference = render(&Scene::build(&base, name, &assets).unwrap(), &s).0;
+        for (scale, offset) in [
+            (1.0, DVec3::new(1e7, -1e7, 1e7)),
+            (1e-5, DVec3::new(1e3, 1e3, -1e3)),
+        ] {
+            let variant = Scene::build(&transformed(&base, scale, offset), name, &assets).unwrap();
+            let differing = differing_pixels(&render(&variant, &s).0, &reference);
+            eprintln!(
+                "{name}: scale {scale:e}, offset {offset}: {differing} pixels differ ({:.2}%)",
+                100.0 * differing as f64 / (w * h) as f64
+            );
+            assert!(
+                differing <= allowed,
+                "{name} scale {scale:e} offset {offset}: {differing} pixels differ (allowed {allowed})"
+            );
+        }
+    }
+}
+
 #[test]
 fn a_plane_lit_at_a_grazing_angle_has_no_shadow_acne() {
     let scene = load("grazing_plane");
@@ -167,7 +235,8 @@ fn a_sphere_lit_from_behind_has_no_terminator_acne() {
         let Some(hit) = scene.world().intersect(&ray, 0.1, 100.0) else {
             continue;
         };
-        let p = ray.at(hit.t);
+        // Rays and the world are relative to the scene's origin; the sphere is at the world's.
+        let p = scene.origin() + ray.at(hit.t);
         let n = p.normalize();
         if n.dot((light - p).normalize()) > 1e-6 {
             lit += 1;
@@ -205,7 +274,7 @@ fn a_cube_resting_on_the_floor_keeps_its_contact_shadow() {
         let Some(hit) = scene.world().intersect(&ray, 0.1, 100.0) else {
             continue;
         };
-        let p = ray.at(hit.t);
+        let p = scene.origin() + ray.at(hit.t);
         if p.y.abs() < 1e-6 && p.x > 1.0 && p.x < 6.0 && p.z.abs() < 0.9 {
             shadowed += 1;
             assert!(
@@ -224,7 +293,7 @@ fn a_cube_resting_on_the_floor_keeps_its_contact_shadow() {
         let Some(hit) = scene.world().intersect(&ray, 0.1, 100.0) else {
             continue;
         };
-        let p = ray.at(hit.t);
+        let p = scene.origin() + ray.at(hit.t);
         if p.y.abs() < 1e-6 && p.x < -1.0 && p.x > -6.0 && p.z.abs() < 0.9 {
             lit += 1;
             assert!(pixel[0] > 0.1 + 1e-6, "acne on the lit floor at {p}");
@@ -294,8 +363,9 @@ fn rays_through_shared_edges_and_vertices_of_a_closed_mesh_all_hit() {
         files: [("mesh.obj".to_string(), obj.into_bytes())].into(),
     };
     let scene = Scene::build(&desc, "watertight", &assets).unwrap();
+    // The model's transform in the scene's frame (relative to its origin, like the world).
     let t = &desc.models[0].transform;
-    let xf = Transform::new(t.position, t.orientation, t.scale);
+    let xf = Transform::new(t.position - scene.origin(), t.orientation, t.scale);
     let world = |p: DVec3| xf.to_world.transform_point3(p);
 
     // Targets: every vertex and every edge midpoint, in world space, with the outward

@@ -171,24 +171,30 @@ fn spheres_and_triangles_over_the_limit_are_refused_where_they_cross_it() {
 }
 
 #[test]
-fn mesh_triangles_count_once_per_mesh_against_what_is_left() {
+fn mesh_triangles_count_once_per_mesh_file_and_models_once_each() {
     let quad = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n";
     let mut assets = MemoryAssets::default();
     assets
         .files
         .insert("quad.obj".into(), quad.as_bytes().to_vec());
+    // Two <mesh> elements naming the same file: it is read and built once.
     let model = r#"    <mesh name="q" filename="quad.obj"/>
+    <mesh name="again" filename="quad.obj"/>
     <model mesh="q" material="m"><position x="0" y="0" z="0"/></model>
     <model mesh="q" material="m"><position x="3" y="0" z="0"/></model>
+    <model mesh="again" material="m"><position x="6" y="0" z="0"/></model>
 "#;
     let text = scene(&(spheres(2) + model));
-    let desc = SceneDescription::parse_with_limits(&text, "t.scene", &limits(0, 3)).unwrap();
-    // 2 spheres + 2 triangles, however many instances: 4.
+    // 2 spheres + 3 models, counted as the XML is read.
+    assert!(SceneDescription::parse_with_limits(&text, "t.scene", &limits(0, 4)).is_err());
+    let desc = SceneDescription::parse_with_limits(&text, "t.scene", &limits(0, 5)).unwrap();
+    assert_eq!(desc.scene_primitives(), 5);
+    // ... + 2 triangles of quad.obj, however many instances and <mesh> elements: 7.
     let err = refused(Scene::build_with_limits(
         &desc,
         "t.scene",
         &assets,
-        &limits(0, 3),
+        &limits(0, 6),
     ));
     assert_eq!(err.limit(), Some("max_primitives"), "{err}");
     assert_eq!(
@@ -197,11 +203,11 @@ fn mesh_triangles_count_once_per_mesh_against_what_is_left() {
         "{err}"
     );
     assert!(
-        err.message.contains("4 is over") && err.message.contains("= 3"),
+        err.message.contains("7 is over") && err.message.contains("= 6"),
         "{err}"
     );
-    let scene = Scene::build_with_limits(&desc, "t.scene", &assets, &limits(0, 4)).unwrap();
-    assert_eq!(scene.stats.triangles, 2);
+    let scene = Scene::build_with_limits(&desc, "t.scene", &assets, &limits(0, 7)).unwrap();
+    assert_eq!((scene.stats.triangles, scene.stats.meshes), (2, 1));
 }
 
 /// An 8-bit grey PNG of `width` × `height`.

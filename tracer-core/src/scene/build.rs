@@ -5,10 +5,12 @@ use std::io::Cursor;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use glam::DVec3;
+
 use super::desc::SceneDescription;
 use super::obj::parse_obj_with_limit;
 use super::{AssetSource, FsAssets, LoadLimits, SceneError};
-use crate::geometry::Transform;
+use crate::geometry::{Motion, Transform, TransformDesc};
 use crate::shade::{CausticCache, CausticMap, Light, Material, Materials, Stage};
 use crate::texture::{Environment, Texture, TextureFilter};
 use crate::world::{Mesh, Model, Mover, MoverShape, Sphere, World, WorldTriangle};
@@ -37,6 +39,10 @@ pub struct Scene {
     /// Whether any used material reflects glossily (the tracer then seeds the gloss stream).
     pub(crate) has_gloss: bool,
     pub stats: SceneStats,
+    /// The world point the scene is built around (the eye at frame 0's shutter opening):
+    /// geometry, lights and cameras are stored relative to it, so f64 positions and f32 BVH
+    /// boxes keep their precision however far from the world origin the scene lies.
+    pub(crate) origin: DVec3,
     /// The caustic photon map, built by the first renderer that needs it (`photon.rs`).
     pub(crate) caustic_cache: CausticCache,
 }
@@ -69,9 +75,16 @@ impl Scene {
         }
     }
 
-    /// The geometry, for direct ray queries (benchmarks, robustness tests).
+    /// The geometry, for direct ray queries (benchmarks, robustness tests). Its coordinates
+    /// are relative to [`origin`](Self::origin), like the renderer's cameras.
     pub fn world(&self) -> &World {
         &self.world
+    }
+
+    /// Where the renderer's frame sits in the scene's world coordinates: a world point `p` is
+    /// `p - origin()` for [`world`](Self::world) and the renderer's cameras.
+    pub fn origin(&self) -> DVec3 {
+        self.origin
     }
 
     /// Loads a scene file and the assets it references (relative to its folder, then the
@@ -97,8 +110,9 @@ impl Scene {
 
     /// Builds from a parsed description under `limits`: each texture's size is read from its
     /// PNG header and counted against `max_texture_pixels` before it is decoded, and each used
-    /// mesh's triangles are counted against what `max_primitives` leaves after the spheres,
-    /// the scene's triangles and earlier meshes, while the OBJ is parsed, before any BVH is
+    /// mesh file's triangles are counted (once, however many models instance it) against what
+    /// `max_primitives` leaves after the spheres, the scene's triangles, the models (one each:
+    /// an entry of the top-level BVH) and earlier meshes, while the OBJ is parsed, before any BVH is
     /// built. `file` names the scene file in errors.
     pub fn build_with_limits(
         description: &SceneDescription,
@@ -120,7 +134,7 @@ impl Scene {
                 "max_primitives",
                 scene_primitives,
                 limits.max_primitives,
-                "spheres and triangles",
+                "spheres, triangles and models",
             ));
         }
         let used_materials = d.used_materials();
@@ -159,46 +173,50 @@ impl Scene {
             });
         }
 
-        // Meshes some model uses, in order, each parsed against what the primitive budget has
-        // left after the spheres, the scene triangles and the meshes before it.
-        let used_meshes: Vec<usize> = d
-            .used_meshes()
-            .iter()
-            .enumerate()
-            .filter_map(|(i, used)| used.then_some(i))
-            .collect();
+        // Meshes some model uses, in order, each file parsed once (however many <mesh>
+        // elements name it) against what the primitive budget has left after the spheres, the
+        // scene triangles, the models and the meshes before it.
         let mut primitives_left = limits.max_primitives - scene_primitives;
-        let mesh_data = used_meshes
-            .iter()
-            .map(|&i| {
-                let m = &d.meshes[i];
-                let Some(path) = &m.filename else {
-                    return Err(scene_error(
-                        m.pos,
-                        format!("mesh \"{}\" has no filename", m.name),
-                    ));
-                };
-                let bytes = assets.read(path).map_err(|e| {
-                    scene_error(
-                        m.pos,
-                        format!(
-                            "cannot read mesh \"{}\" from '{}': {e}",
-                            m.name,
-                            assets.display_name(path)
-                        ),
-                    )
-                })?;
-                let text = String::from_utf8_lossy(&bytes);
-                let mesh = parse_obj_with_limit(
-                    &text,
-                    &assets.display_name(path),
-                    primitives_left,
-                    limits.max_primitives,
-                )?;
-                primitives_left -= mesh.triangles.len() as u64;
-                Ok(mesh)
-            })
-            .collect::<Result<Vec<_>, _>>()?;
+        let mut mesh_slot = vec![u32::MAX; d.meshes.len()];
+        let mut slot_of_file: HashMap<&str, u32> = HashMap::new();
+        let mut mesh_data = Vec::new();
+        for (i, used) in d.used_meshes().into_iter().enumerate() {
+            let m = &d.meshes[i];
+            if !used {
+                continue;
+            }
+            let Some(path) = &m.filename else {
+                return Err(scene_error(
+                    m.pos,
+                    format!("mesh \"{}\" has no filename", m.name),
+                ));
+            };
+            if let Some(&slot) = slot_of_file.get(path.as_str()) {
+                mesh_slot[i] = slot;
+                continue;
+            }
+            let bytes = assets.read(path).map_err(|e| {
+                scene_error(
+                    m.pos,
+                    format!(
+                        "cannot read mesh \"{}\" from '{}': {e}",
+                        m.name,
+                        assets.display_name(path)
+                    ),
+                )
+            })?;
+            let text = String::from_utf8_lossy(&bytes);
+            let mesh = parse_obj_with_limit(
+                &text,
+                &assets.display_name(path),
+                primitives_left,
+                limits.max_primitives,
+            )?;
+            primitives_left -= mesh.triangles.len() as u64;
+            mesh_slot[i] = mesh_data.len() as u32;
+            slot_of_file.insert(path, mesh_data.len() as u32);
+            mesh_data.push(mesh);
+        }
         let environment = match &d.environment {
             Some(e) => {
                 let image = load_png(&e.file, assets, "environment map: ", "", &mut pixels)
@@ -210,14 +228,14 @@ impl Scene {
         let asset_load = load_started.elapsed();
 
         let build_started = Instant::now();
-        let mut mesh_slot = vec![u32::MAX; d.meshes.len()];
+        // Camera-relative rendering (as pbrt-v4): everything is placed relative to the eye,
+        // where the eye rays start, so precision is spent where the image is made.
+        let origin = d.camera.at(d.camera.shutter[0]).0;
+        let transform = |t: &TransformDesc| placed(t, origin);
         let mut triangles_total = 0;
-        let meshes: Vec<Mesh> = used_meshes
-            .iter()
-            .zip(mesh_data)
-            .enumerate()
-            .map(|(slot, (&i, data))| {
-                mesh_slot[i] = slot as u32;
+        let meshes: Vec<Mesh> = mesh_data
+            .into_iter()
+            .map(|data| {
                 triangles_total += data.triangles.len();
                 Mesh::new(
                     &data.positions,
@@ -274,8 +292,8 @@ impl Scene {
                     radius: s.radius,
                     material: s.material as u32,
                 },
-                base: s.transform,
-                motion: s.motion.clone(),
+                base: relative(&s.transform, origin),
+                motion: relative_motion(&s.motion, origin),
             });
         }
         for t in d.triangles.iter().filter(|t| !t.motion.is_static()) {
@@ -286,8 +304,8 @@ impl Scene {
                     tex_coords: t.vertices.each_ref().map(|v| v.tex_coord),
                     materials: t.vertices.each_ref().map(|v| v.material as u32),
                 }),
-                base: t.transform,
-                motion: t.motion.clone(),
+                base: relative(&t.transform, origin),
+                motion: relative_motion(&t.motion, origin),
             });
         }
         for m in d.models.iter().filter(|m| !m.motion.is_static()) {
@@ -296,8 +314,8 @@ impl Scene {
                     mesh: mesh_slot[m.mesh],
                     material: m.material as u32,
                 },
-                base: m.transform,
-                motion: m.motion.clone(),
+                base: relative(&m.transform, origin),
+                motion: relative_motion(&m.motion, origin),
             });
         }
         // Ray times run from frame 0's shutter opening to the last frame's closing.
@@ -309,7 +327,7 @@ impl Scene {
             .lights
             .iter()
             .map(|l| Light {
-                position: l.position,
+                position: l.position - origin,
                 color: l.color,
                 attenuation: l.attenuation,
                 radius: l.radius,
@@ -335,11 +353,32 @@ impl Scene {
             textures,
             world,
             caustic_cache: Default::default(),
+            origin,
         })
     }
 }
 
-fn transform(t: &super::desc::TransformDesc) -> Transform {
+/// `t` in the frame whose origin is the world point `origin`.
+fn relative(t: &TransformDesc, origin: DVec3) -> TransformDesc {
+    TransformDesc {
+        position: t.position - origin,
+        ..*t
+    }
+}
+
+/// `motion`'s keys in the frame whose origin is `origin` (velocity and spin do not depend on
+/// where the origin is).
+fn relative_motion(motion: &Motion, origin: DVec3) -> Motion {
+    let mut moved = motion.clone();
+    for key in &mut moved.keys {
+        key.transform = relative(&key.transform, origin);
+    }
+    moved
+}
+
+/// The transform `t` describes, in the frame whose origin is `origin`.
+fn placed(t: &TransformDesc, origin: DVec3) -> Transform {
+    let t = relative(t, origin);
     Transform::new(t.position, t.orientation, t.scale)
 }
 

@@ -12,8 +12,9 @@ pub struct LoadLimits {
     /// Decoded texture pixels (width*height summed over the textures the scene uses), checked from
     /// the PNG header before anything is decoded.
     pub max_texture_pixels: u64,
-    /// Spheres + scene triangles + triangles of each distinct mesh (counted once per mesh, not per
-    /// instance), checked while parsing, before the tree/BVHs are allocated.
+    /// Spheres + scene triangles + models (one each: an instance in the top-level BVH) +
+    /// triangles of each distinct mesh file (counted once per file, not per instance), checked
+    /// while parsing, before the tree/BVHs are allocated.
     ///
     /// It also bounds the XML element tree the parser holds: at most
     /// [`ELEMENTS_PER_PRIMITIVE`](Self::ELEMENTS_PER_PRIMITIVE) elements per allowed primitive

@@ -3,7 +3,7 @@
 //!
 //! The tree is bounded before it is built: elements nest at most [`MAX_DEPTH`] deep (so no
 //! walk over the tree, dropping it included, recurses deeper than that), the document holds at
-//! most [`LoadLimits::max_elements`] elements, and spheres and triangles are counted against
+//! most [`LoadLimits::max_elements`] elements, and spheres, triangles and models are counted against
 //! `max_primitives` as they open.
 
 use std::cell::Cell;
@@ -200,7 +200,9 @@ impl Counts {
                 "XML elements",
             ));
         }
-        let is_primitive = matches!(element.name.as_str(), "sphere" | "triangle");
+        // A model is one instance in the top-level BVH; its mesh's triangles are counted once
+        // per mesh file when the OBJ is read.
+        let is_primitive = matches!(element.name.as_str(), "sphere" | "triangle" | "model");
         if is_primitive && first_root && stack.len() == 1 {
             self.primitives += 1;
             if self.primitives > limits.max_primitives {
@@ -211,7 +213,7 @@ impl Counts {
                     "max_primitives",
                     self.primitives,
                     limits.max_primitives,
-                    "spheres and triangles",
+                    "spheres, triangles and models",
                 ));
             }
         }

@@ -135,9 +135,9 @@ impl CausticMap {
             .sum()
     }
 
-    /// Caustic irradiance at `p` on a surface whose unit normal `n` faces the viewer: the
-    /// photons within the radius, weighted by the Epanechnikov kernel 1 − d²/r², whose
-    /// integral over the disc is πr²/2.
+    /// Caustic irradiance at `p` (in the scene's frame, relative to `Scene::origin()`) on a
+    /// surface whose unit normal `n` faces the viewer: the photons within the radius, weighted
+    /// by the Epanechnikov kernel 1 − d²/r², whose integral over the disc is πr²/2.
     pub fn irradiance(&self, p: DVec3, n: DVec3) -> DVec3 {
         let r2 = self.radius * self.radius;
         let lo = cell_key(p - DVec3::splat(self.radius), self.cell);

@@ -110,11 +110,22 @@ impl Crossing {
     }
 }
 
-/// Moves a spawned ray's origin off the surface, to the side its direction leaves toward.
-/// The offset scales with the magnitudes that bound the hit point's rounding error (its
-/// coordinates and the distance travelled to it), so it works at any scene scale without a
-/// fixed epsilon; at 1e-9 relative it stays far below the 0.001 gaps in stacks.scene.
-/// The ray keeps its parent's `time`.
+/// How far a spawned ray's origin moves off the surface, relative to the magnitudes that bound
+/// the hit point's rounding error. A hit point `o + t·d` is off the true surface by a few ulps
+/// of (|p| + t), multiplied by the condition of a model's transform (rays are intersected in
+/// the mesh's own frame); 1e-9 is about 2^22 ulps (f64::EPSILON = 2^-52) of that magnitude,
+/// room for transforms of condition up to ~1e4, and still far below stacks.scene's 0.001
+/// gaps. Because scenes are built relative to the eye (`scene::build`), |p| is the distance
+/// from the eye, not from the world origin, so the offset no longer grows with the scene's
+/// position in the world.
+pub const SPAWN_OFFSET: f64 = 1e-9;
+
+/// Moves a spawned ray's origin off the surface, to the side its direction leaves toward, by
+/// [`SPAWN_OFFSET`] × `error_scale` along the geometric normal (`error_scale`: the largest
+/// coordinate of the hit point plus the distance travelled to it). Each coordinate the normal
+/// moves at all moves by at least one ulp (as in Ray Tracing Gems ch. 6), so an offset smaller
+/// than the coordinate's spacing cannot vanish in the addition. The ray keeps its parent's
+/// `time`.
 pub fn spawn_ray(
     position: DVec3,
     geometric_normal: DVec3,
@@ -122,13 +133,32 @@ pub fn spawn_ray(
     error_scale: f64,
     time: f64,
 ) -> Ray {
-    let offset = 1e-9 * error_scale;
     let side = if dir.dot(geometric_normal) >= 0.0 {
         geometric_normal
     } else {
         -geometric_normal
     };
-    Ray::new(position + offset * side, dir).at_time(time)
+    let offset = SPAWN_OFFSET * error_scale * side;
+    let origin = DVec3::new(
+        nudge(position.x, offset.x),
+        nudge(position.y, offset.y),
+        nudge(position.z, offset.z),
+    );
+    Ray::new(origin, dir).at_time(time)
+}
+
+/// `p + offset`, but at least one ulp away from `p` in the offset's direction when the offset
+/// is not zero.
+#[inline(always)]
+fn nudge(p: f64, offset: f64) -> f64 {
+    let moved = p + offset;
+    if moved != p || offset == 0.0 {
+        moved
+    } else if offset > 0.0 {
+        p.next_up()
+    } else {
+        p.next_down()
+    }
 }
 
 /// A mirror direction spread over a lobe: `mirror` plus a uniform point of a ball of radius
@@ -204,6 +234,24 @@ mod tests {
         let unmatched = Crossing::new(air, DVec3::NEG_Y, down, 1.5, DVec3::ZERO);
         assert_eq!((unmatched.n1, unmatched.n2), (1.5, 1.0));
         assert_eq!(unmatched.reflectance, schlick(1.5, 1.0, 1.0));
+    }
+
+    #[test]
+    fn spawned_origins_leave_the_surface_toward_the_ray_by_at_least_an_ulp() {
+        // A normal with a z component far too small to move z = 5 by the relative offset.
+        let n = DVec3::new(0.0, 1.0, 1e-12).normalize();
+        let p = DVec3::new(3.0, 1e-3, 5.0);
+        let up = spawn_ray(p, n, DVec3::new(0.3, 1.0, 0.0).normalize(), 10.0, 0.5);
+        assert_eq!(up.time, 0.5);
+        assert!((up.origin.y - p.y - SPAWN_OFFSET * 10.0).abs() < 1e-18);
+        assert_eq!(up.origin.z, p.z.next_up());
+        assert_eq!(up.origin.x, p.x, "the normal does not move x");
+        let down = spawn_ray(p, n, DVec3::NEG_Y, 10.0, 0.0);
+        assert!((p.y - down.origin.y - SPAWN_OFFSET * 10.0).abs() < 1e-18);
+        assert_eq!(down.origin.z, p.z.next_down());
+        // The offset follows the error scale, not a fixed epsilon.
+        let tiny = spawn_ray(p * 1e-6, n, DVec3::Y, 1e-5, 0.0);
+        assert!((tiny.origin.y - 1e-9 - SPAWN_OFFSET * 1e-5).abs() < 1e-24);
     }
 
     #[test]

@@ -208,6 +208,7 @@ fn run(cli: Cli) -> Result<(), Failure> {
             } else {
                 println!("threads            {}", pool.current_num_threads());
                 println!("triangles          {}", scene.stats.triangles);
+                println!("bytes/triangle     {:.1}", report.bytes_per_triangle);
                 println!("BVH build          {:.2} ms", report.build_ms);
                 println!(
                     "primary rays       {:.2} Mrays/s ({} rays)",

@@ -51,7 +51,7 @@ impl SceneDescription {
         Self::parse_with_limits(text, file, &LoadLimits::UNLIMITED)
     }
 
-    /// Parses scene XML under `limits`: spheres and triangles are counted against
+    /// Parses scene XML under `limits`: spheres, triangles and models are counted against
     /// `max_primitives` as the XML is read, so an oversized file is refused before its element
     /// tree is complete. (Mesh triangles and texture pixels are checked by
     /// [`Scene::build_with_limits`](super::Scene::build_with_limits), which reads the assets.)
@@ -64,9 +64,11 @@ impl SceneDescription {
         Parser::new(file, limits).scene(&root)
     }
 
-    /// Spheres plus scene triangles: the primitives counted before any mesh is read.
+    /// Spheres, scene triangles and models (each model one instance in the top-level BVH; its
+    /// mesh's triangles count once per mesh file): the primitives counted before any mesh is
+    /// read.
     pub fn scene_primitives(&self) -> u64 {
-        self.spheres.len() as u64 + self.triangles.len() as u64
+        self.spheres.len() as u64 + self.triangles.len() as u64 + self.models.len() as u64
     }
 
     /// For each material, whether some geometry uses it (one pass over the geometry).
