@@ -43,35 +43,24 @@ pub struct Bins {
     pub tracer: PathBuf,
 }
 
-/// The release binaries of the coordinator, the worker and the tracer, built once per test
-/// run (a no-op when `.ci/run` built them already). `TESSERA_BIN_DIR` points elsewhere.
+/// The binaries of the coordinator, the worker and the tracer that cargo built for this test
+/// run: `cargo test --workspace` builds each package's binaries for its own integration tests
+/// (coordinator/tests, worker/tests, tracer-core/tests) into the profile's directory, the
+/// parent of this test executable's `deps/`. `TESSERA_BIN_DIR` points elsewhere (installed
+/// binaries, another profile). A binary missing, or older than a source file it was built
+/// from, fails the test: it would test other code than the checkout's.
 pub fn bins() -> &'static Bins {
     static BINS: OnceLock<Bins> = OnceLock::new();
     BINS.get_or_init(|| {
-        let dir = match std::env::var_os("TESSERA_BIN_DIR") {
-            Some(dir) => PathBuf::from(dir),
+        let (dir, cargo_built) = match std::env::var_os("TESSERA_BIN_DIR") {
+            Some(dir) => (PathBuf::from(dir), false),
             None => {
-                let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-                let status = Command::new(cargo)
-                    .current_dir(workspace())
-                    .args([
-                        "build",
-                        "--release",
-                        "--bins",
-                        "-p",
-                        "coordinator",
-                        "-p",
-                        "worker",
-                        "-p",
-                        "tracer-core",
-                    ])
-                    .status()
-                    .expect("running cargo build");
-                assert!(status.success(), "building the farm's binaries failed");
-                std::env::var_os("CARGO_TARGET_DIR")
-                    .map(PathBuf::from)
-                    .unwrap_or_else(|| workspace().join("target"))
-                    .join("release")
+                let exe = std::env::current_exe().expect("the test executable's path");
+                let deps = exe.parent().expect("the test executable sits in deps/");
+                let dir = deps
+                    .parent()
+                    .expect("deps/ sits in the profile's directory");
+                (dir.to_path_buf(), true)
             }
         };
         let bins = Bins {
@@ -80,10 +69,48 @@ pub fn bins() -> &'static Bins {
             tracer: dir.join("tracer"),
         };
         for bin in [&bins.coordinator, &bins.worker, &bins.tracer] {
-            assert!(bin.is_file(), "{} was not built", bin.display());
+            if let Err(why) = check_fresh(bin, cargo_built) {
+                panic!(
+                    "{why}\nThe farm tests run the binaries `cargo test --release --workspace` \
+                     builds; with `-p tessera-tests` alone, run `cargo build --release --bins` \
+                     first, or set TESSERA_BIN_DIR."
+                );
+            }
         }
         bins
     })
+}
+
+/// Whether `bin` exists and is newer than every file in cargo's dep-info beside it (what
+/// rustc read to build it). Cargo always writes that file; binaries from elsewhere may lack it.
+fn check_fresh(bin: &Path, cargo_built: bool) -> Result<(), String> {
+    let built = std::fs::metadata(bin)
+        .and_then(|m| m.modified())
+        .map_err(|e| format!("{} was not built ({e}).", bin.display()))?;
+    let dep_info = bin.with_extension("d");
+    let text = match std::fs::read_to_string(&dep_info) {
+        Ok(text) => text,
+        Err(_) if !cargo_built => return Ok(()),
+        Err(e) => return Err(format!("{}: {e}", dep_info.display())),
+    };
+    // `target: src1 src2 …`, spaces in paths escaped with a backslash.
+    let sources = text.split_once(": ").map_or("", |(_, s)| s);
+    let sources = sources.replace("\\ ", "\0");
+    for source in sources.split_whitespace() {
+        let source = Path::new(&source.replace('\0', " ")).to_path_buf();
+        let changed = std::fs::metadata(&source).and_then(|m| m.modified());
+        match changed {
+            Ok(changed) if changed <= built => {}
+            _ => {
+                return Err(format!(
+                    "{} is stale: {} changed after it was built.",
+                    bin.display(),
+                    source.display()
+                ))
+            }
+        }
+    }
+    Ok(())
 }
 
 /// A child process that is killed when dropped, with its stderr in a file.
