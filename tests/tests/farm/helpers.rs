@@ -47,12 +47,13 @@ pub struct Bins {
 /// run: `cargo test --workspace` builds each package's binaries for its own integration tests
 /// (coordinator/tests, worker/tests, tracer-core/tests) into the profile's directory, the
 /// parent of this test executable's `deps/`. `TESSERA_BIN_DIR` points elsewhere (installed
-/// binaries, another profile). A binary missing, or older than a source file it was built
-/// from, fails the test: it would test other code than the checkout's.
+/// binaries, another profile). A binary missing, or older than a source file of the crates it
+/// is built from, fails the test: it would test other code than the checkout's (as after
+/// `cargo test -p tessera-tests` alone, which builds no binaries).
 pub fn bins() -> &'static Bins {
     static BINS: OnceLock<Bins> = OnceLock::new();
     BINS.get_or_init(|| {
-        let (dir, cargo_built) = match std::env::var_os("TESSERA_BIN_DIR") {
+        let (dir, check) = match std::env::var_os("TESSERA_BIN_DIR") {
             Some(dir) => (PathBuf::from(dir), false),
             None => {
                 let exe = std::env::current_exe().expect("the test executable's path");
@@ -68,8 +69,29 @@ pub fn bins() -> &'static Bins {
             worker: dir.join("worker"),
             tracer: dir.join("tracer"),
         };
-        for bin in [&bins.coordinator, &bins.worker, &bins.tracer] {
-            if let Err(why) = check_fresh(bin, cargo_built) {
+        // What each binary is compiled from (its crates' sources and included files).
+        let tracer = ["tracer-core/src"];
+        let worker = ["tracer-core/src", "protocol/src", "worker/src"];
+        let coordinator = [
+            "tracer-core/src",
+            "protocol/src",
+            "worker/src",
+            "coordinator/src",
+            "coordinator/dashboard",
+        ];
+        for (bin, sources) in [
+            (&bins.coordinator, &coordinator[..]),
+            (&bins.worker, &worker[..]),
+            (&bins.tracer, &tracer[..]),
+        ] {
+            let fresh = if check {
+                check_fresh(bin, sources)
+            } else if bin.is_file() {
+                Ok(())
+            } else {
+                Err(format!("{} is missing.", bin.display()))
+            };
+            if let Err(why) = fresh {
                 panic!(
                     "{why}\nThe farm tests run the binaries `cargo test --release --workspace` \
                      builds; with `-p tessera-tests` alone, run `cargo build --release --bins` \
@@ -81,33 +103,24 @@ pub fn bins() -> &'static Bins {
     })
 }
 
-/// Whether `bin` exists and is newer than every file in cargo's dep-info beside it (what
-/// rustc read to build it). Cargo always writes that file; binaries from elsewhere may lack it.
-fn check_fresh(bin: &Path, cargo_built: bool) -> Result<(), String> {
+/// Whether `bin` exists and is newer than every file under `sources` (paths in the workspace).
+fn check_fresh(bin: &Path, sources: &[&str]) -> Result<(), String> {
     let built = std::fs::metadata(bin)
         .and_then(|m| m.modified())
         .map_err(|e| format!("{} was not built ({e}).", bin.display()))?;
-    let dep_info = bin.with_extension("d");
-    let text = match std::fs::read_to_string(&dep_info) {
-        Ok(text) => text,
-        Err(_) if !cargo_built => return Ok(()),
-        Err(e) => return Err(format!("{}: {e}", dep_info.display())),
-    };
-    // `target: src1 src2 …`, spaces in paths escaped with a backslash.
-    let sources = text.split_once(": ").map_or("", |(_, s)| s);
-    let sources = sources.replace("\\ ", "\0");
-    for source in sources.split_whitespace() {
-        let source = Path::new(&source.replace('\0', " ")).to_path_buf();
-        let changed = std::fs::metadata(&source).and_then(|m| m.modified());
-        match changed {
-            Ok(changed) if changed <= built => {}
-            _ => {
-                return Err(format!(
-                    "{} is stale: {} changed after it was built.",
-                    bin.display(),
-                    source.display()
-                ))
-            }
+    let mut pending: Vec<PathBuf> = sources.iter().map(|s| workspace().join(s)).collect();
+    while let Some(path) = pending.pop() {
+        let meta = std::fs::metadata(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        if meta.is_dir() {
+            let entries =
+                std::fs::read_dir(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+            pending.extend(entries.filter_map(|e| e.ok()).map(|e| e.path()));
+        } else if meta.modified().is_ok_and(|changed| changed > built) {
+            return Err(format!(
+                "{} is stale: {} changed after it was built.",
+                bin.display(),
+                path.display()
+            ));
         }
     }
     Ok(())
