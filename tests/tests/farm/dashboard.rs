@@ -12,13 +12,12 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use fantoccini::elements::Element;
-use fantoccini::{Client as Browser, ClientBuilder, Locator};
 use protocol::client::Client;
 use protocol::JobState;
 use serde_json::{json, Value};
 
 use crate::helpers::*;
+use crate::webdriver::{Browser, Element};
 
 const TOKEN: &str = "dashboard-token";
 
@@ -98,21 +97,14 @@ async fn open_browser(chromium: &Path, driver_url: &str) -> Browser {
                      "--window-size=1500,1100", "--hide-scrollbars"]
         }
     });
-    let Value::Object(caps) = caps else {
-        unreachable!()
-    };
-    ClientBuilder::new(hyper_util::client::legacy::connect::HttpConnector::new())
-        .capabilities(caps)
-        .connect(driver_url)
+    Browser::connect(driver_url, caps)
         .await
-        .expect("starting a Chromium session")
+        .unwrap_or_else(|e| panic!("starting a Chromium session: {e}"))
 }
 
-async fn find(browser: &Browser, css: &str) -> Element {
+async fn find<'a>(browser: &'a Browser, css: &str) -> Element<'a> {
     browser
-        .wait()
-        .at_most(Duration::from_secs(20))
-        .for_element(Locator::Css(css))
+        .wait_for(css, Duration::from_secs(20))
         .await
         .unwrap_or_else(|e| panic!("no {css} on the page: {e}"))
 }
@@ -122,10 +114,7 @@ async fn wait_js(browser: &Browser, expr: &str, ok: impl Fn(&Value) -> bool) -> 
     let start = Instant::now();
     let script = format!("return {expr};");
     loop {
-        let value = browser
-            .execute(&script, vec![])
-            .await
-            .unwrap_or(Value::Null);
+        let value = browser.execute(&script).await.unwrap_or(Value::Null);
         if ok(&value) {
             return value;
         }
@@ -169,7 +158,7 @@ async fn preview_bytes(browser: &Browser) -> Vec<u8> {
             .then((r) => r.arrayBuffer())
             .then((b) => done(Array.from(new Uint8Array(b))), (e) => done(String(e)));
     "#;
-    let value = browser.execute_async(script, vec![]).await.unwrap();
+    let value = browser.execute_async(script).await.unwrap();
     let Value::Array(bytes) = value else {
         panic!("reading the preview failed: {value}")
     };
@@ -432,7 +421,7 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     })
     .await;
     browser
-        .execute("sessionStorage.clear(); return null;", vec![])
+        .execute("sessionStorage.clear(); return null;")
         .await
         .unwrap();
     browser
@@ -463,7 +452,7 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     .await;
     assert_eq!(client.job(e).await.unwrap().state, JobState::Queued);
     assert_eq!(
-        browser.current_url().await.unwrap().fragment(),
+        browser.current_url().await.unwrap().split_once('#'),
         None,
         "the token is taken out of the address bar"
     );

@@ -43,35 +43,25 @@ pub struct Bins {
     pub tracer: PathBuf,
 }
 
-/// The release binaries of the coordinator, the worker and the tracer, built once per test
-/// run (a no-op when `.ci/run` built them already). `TESSERA_BIN_DIR` points elsewhere.
+/// The binaries of the coordinator, the worker and the tracer that cargo built for this test
+/// run: `cargo test --workspace` builds each package's binaries for its own integration tests
+/// (coordinator/tests, worker/tests, tracer-core/tests) into the profile's directory, the
+/// parent of this test executable's `deps/`. `TESSERA_BIN_DIR` points elsewhere (installed
+/// binaries, another profile). A binary missing, or older than a source file of the crates it
+/// is built from, fails the test: it would test other code than the checkout's (as after
+/// `cargo test -p tessera-tests` alone, which builds no binaries).
 pub fn bins() -> &'static Bins {
     static BINS: OnceLock<Bins> = OnceLock::new();
     BINS.get_or_init(|| {
-        let dir = match std::env::var_os("TESSERA_BIN_DIR") {
-            Some(dir) => PathBuf::from(dir),
+        let (dir, check) = match std::env::var_os("TESSERA_BIN_DIR") {
+            Some(dir) => (PathBuf::from(dir), false),
             None => {
-                let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
-                let status = Command::new(cargo)
-                    .current_dir(workspace())
-                    .args([
-                        "build",
-                        "--release",
-                        "--bins",
-                        "-p",
-                        "coordinator",
-                        "-p",
-                        "worker",
-                        "-p",
-                        "tracer-core",
-                    ])
-                    .status()
-                    .expect("running cargo build");
-                assert!(status.success(), "building the farm's binaries failed");
-                std::env::var_os("CARGO_TARGET_DIR")
-                    .map(PathBuf::from)
-                    .unwrap_or_else(|| workspace().join("target"))
-                    .join("release")
+                let exe = std::env::current_exe().expect("the test executable's path");
+                let deps = exe.parent().expect("the test executable sits in deps/");
+                let dir = deps
+                    .parent()
+                    .expect("deps/ sits in the profile's directory");
+                (dir.to_path_buf(), true)
             }
         };
         let bins = Bins {
@@ -79,11 +69,61 @@ pub fn bins() -> &'static Bins {
             worker: dir.join("worker"),
             tracer: dir.join("tracer"),
         };
-        for bin in [&bins.coordinator, &bins.worker, &bins.tracer] {
-            assert!(bin.is_file(), "{} was not built", bin.display());
+        // What each binary is compiled from (its crates' sources and included files).
+        let tracer = ["tracer-core/src"];
+        let worker = ["tracer-core/src", "protocol/src", "worker/src"];
+        let coordinator = [
+            "tracer-core/src",
+            "protocol/src",
+            "worker/src",
+            "coordinator/src",
+            "coordinator/dashboard",
+        ];
+        for (bin, sources) in [
+            (&bins.coordinator, &coordinator[..]),
+            (&bins.worker, &worker[..]),
+            (&bins.tracer, &tracer[..]),
+        ] {
+            let fresh = if check {
+                check_fresh(bin, sources)
+            } else if bin.is_file() {
+                Ok(())
+            } else {
+                Err(format!("{} is missing.", bin.display()))
+            };
+            if let Err(why) = fresh {
+                panic!(
+                    "{why}\nThe farm tests run the binaries `cargo test --release --workspace` \
+                     builds; with `-p tessera-tests` alone, run `cargo build --release --bins` \
+                     first, or set TESSERA_BIN_DIR."
+                );
+            }
         }
         bins
     })
+}
+
+/// Whether `bin` exists and is newer than every file under `sources` (paths in the workspace).
+fn check_fresh(bin: &Path, sources: &[&str]) -> Result<(), String> {
+    let built = std::fs::metadata(bin)
+        .and_then(|m| m.modified())
+        .map_err(|e| format!("{} was not built ({e}).", bin.display()))?;
+    let mut pending: Vec<PathBuf> = sources.iter().map(|s| workspace().join(s)).collect();
+    while let Some(path) = pending.pop() {
+        let meta = std::fs::metadata(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        if meta.is_dir() {
+            let entries =
+                std::fs::read_dir(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+            pending.extend(entries.filter_map(|e| e.ok()).map(|e| e.path()));
+        } else if meta.modified().is_ok_and(|changed| changed > built) {
+            return Err(format!(
+                "{} is stale: {} changed after it was built.",
+                bin.display(),
+                path.display()
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A child process that is killed when dropped, with its stderr in a file.

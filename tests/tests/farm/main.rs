@@ -13,3 +13,4 @@ mod deploy;
 mod e2e;
 mod faults;
 mod hardening;
+mod webdriver;
