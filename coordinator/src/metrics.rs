@@ -229,7 +229,11 @@ impl Metrics {
             Unit::Seconds,
             seen,
         );
-        r.register("worker_busy", "1 while a worker holds a lease, else 0", busy);
+        r.register(
+            "worker_busy",
+            "1 while a worker holds a lease, else 0",
+            busy,
+        );
     }
 }
 
@@ -344,12 +348,7 @@ mod tests {
         let sample = scrape
             .samples
             .iter()
-            .find(|s| {
-                s.metric == name
-                    && labels
-                        .iter()
-                        .all(|(k, v)| s.labels.get(k) == Some(*v))
-            })
+            .find(|s| s.metric == name && labels.iter().all(|(k, v)| s.labels.get(k) == Some(*v)))
             .unwrap_or_else(|| panic!("no {name} {labels:?}"));
         match sample.value {
             prometheus_parse::Value::Counter(v)
@@ -383,7 +382,10 @@ mod tests {
         assert!(text.ends_with("# EOF\n"), "{text}");
         assert!(text.contains("# TYPE tessera_tiles gauge\n"), "{text}");
         // The exact lines the KEDA trigger and the farm tests read.
-        assert!(text.contains("tessera_tiles{state=\"queued\"} 12\n"), "{text}");
+        assert!(
+            text.contains("tessera_tiles{state=\"queued\"} 12\n"),
+            "{text}"
+        );
         assert!(text.contains("tessera_leases_granted_total 3\n"), "{text}");
         // Every line is a comment or a sample (the parser skips what it cannot read).
         for line in text.lines().filter(|l| !l.starts_with('#')) {

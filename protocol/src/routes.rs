@@ -196,7 +196,8 @@ const fn api(
 const NO_JOB: Answer = err(404, "no such job");
 const STALE: Answer = err(409, "the lease is stale or unknown");
 const BAD_JSON: Answer = err(400, "the body is not the expected JSON");
-const OVER_BUDGET: &str = "bad scene, settings or asset path, or over a budget (the limit is named)";
+const OVER_BUDGET: &str =
+    "bad scene, settings or asset path, or over a budget (the limit is named)";
 
 /// The whole API.
 pub const ROUTES: &[Route] = &[
@@ -246,7 +247,11 @@ pub const ROUTES: &[Route] = &[
         "/jobs/{id}/retry",
         "requeue a failed job",
         &[
-            ok(200, Body::Json("JobInfo"), "the job, its failed tiles queued again"),
+            ok(
+                200,
+                Body::Json("JobInfo"),
+                "the job, its failed tiles queued again",
+            ),
             NO_JOB,
             err(409, "the job has not failed"),
             STORAGE,
@@ -297,7 +302,11 @@ pub const ROUTES: &[Route] = &[
         "GET",
         "/jobs/{id}/bundle",
         "what a worker needs to load the scene",
-        &[ok(200, Body::Json("Bundle"), "the scene's files by hash"), NO_JOB, STORAGE],
+        &[
+            ok(200, Body::Json("Bundle"), "the scene's files by hash"),
+            NO_JOB,
+            STORAGE,
+        ],
     ),
     api(
         RouteId::JobTiles,
@@ -327,7 +336,11 @@ pub const ROUTES: &[Route] = &[
         "GET",
         "/jobs/{id}/camera",
         "where the job looks from",
-        &[ok(200, Body::Json("JobCamera"), "the camera"), NO_JOB, STORAGE],
+        &[
+            ok(200, Body::Json("JobCamera"), "the camera"),
+            NO_JOB,
+            STORAGE,
+        ],
     ),
     api(
         RouteId::ResubmitJob,
@@ -420,7 +433,10 @@ pub const ROUTES: &[Route] = &[
         "POST",
         "/leases/{id}/heartbeat",
         "extend a lease",
-        &[ok(200, Body::Json("LeaseStatus"), "the lease's new expiry"), STALE],
+        &[
+            ok(200, Body::Json("LeaseStatus"), "the lease's new expiry"),
+            STALE,
+        ],
     ),
     api(
         RouteId::Pixels,
@@ -429,7 +445,10 @@ pub const ROUTES: &[Route] = &[
         "complete a tile",
         &[
             ok(200, Body::Json("Completion"), "the job's progress"),
-            err(400, "the wrong size, or a non-finite value (the tile is queued again)"),
+            err(
+                400,
+                "the wrong size, or a non-finite value (the tile is queued again)",
+            ),
             STALE,
             STORAGE,
         ],

@@ -179,7 +179,11 @@ async fn check_token(app: &App, accepted: &[[u8; 32]], req: Request, next: Next)
         let problem = match given {
             None => Some("this coordinator needs an 'Authorization: Bearer <token>' header"),
             // Every candidate is compared, so the time taken does not say which one matched.
-            Some(given) if !accepted.iter().fold(false, |hit, d| hit | bool::from(given.ct_eq(d))) => {
+            Some(given)
+                if !accepted
+                    .iter()
+                    .fold(false, |hit, d| hit | bool::from(given.ct_eq(d))) =>
+            {
                 Some("wrong bearer token")
             }
             Some(_) => None,
@@ -324,8 +328,10 @@ pub fn router(farm: Arc<Farm>, auth: &Auth) -> Router {
     let guarded = guarded
         .nest(API_PREFIX, api)
         .route_layer(middleware::from_fn_with_state(app.clone(), authenticate));
-    let scrape =
-        scrape.route_layer(middleware::from_fn_with_state(app.clone(), authenticate_scrape));
+    let scrape = scrape.route_layer(middleware::from_fn_with_state(
+        app.clone(),
+        authenticate_scrape,
+    ));
     open.merge(dashboard::routes())
         .merge(guarded)
         .merge(scrape)

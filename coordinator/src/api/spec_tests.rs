@@ -43,7 +43,12 @@ fn concrete(path: &str) -> String {
         .replace("{hash}", &"0".repeat(64))
 }
 
-async fn call(app: &axum::Router, method: &str, path: &str, token: Option<&str>) -> (StatusCode, String, Vec<u8>) {
+async fn call(
+    app: &axum::Router,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+) -> (StatusCode, String, Vec<u8>) {
     let mut req = Request::builder()
         .method(Method::from_bytes(method.as_bytes()).unwrap())
         .uri(path);
@@ -94,7 +99,12 @@ async fn every_served_route_is_in_the_spec_with_its_statuses() {
             .get(&path)
             .unwrap_or_else(|| panic!("{path} is not in the spec"))[route.method.to_lowercase()];
         assert!(op.is_object(), "{} {path} is not in the spec", route.method);
-        let listed: BTreeSet<String> = op["responses"].as_object().unwrap().keys().cloned().collect();
+        let listed: BTreeSet<String> = op["responses"]
+            .as_object()
+            .unwrap()
+            .keys()
+            .cloned()
+            .collect();
         let table: BTreeSet<String> = route
             .statuses()
             .iter()
@@ -116,10 +126,12 @@ async fn every_served_route_is_in_the_spec_with_its_statuses() {
     let operations: usize = paths
         .values()
         .map(|item| {
-            ["get", "put", "post", "delete", "patch", "head", "options", "trace"]
-                .iter()
-                .filter(|m| item.get(**m).is_some())
-                .count()
+            [
+                "get", "put", "post", "delete", "patch", "head", "options", "trace",
+            ]
+            .iter()
+            .filter(|m| item.get(**m).is_some())
+            .count()
         })
         .sum();
     assert_eq!(operations, ROUTES.len());
@@ -136,7 +148,10 @@ fn the_spec_names_query_parameters_and_security() {
         .find(|p| p["name"] == "format")
         .expect("?format");
     assert_eq!(format["in"], "query");
-    assert_eq!(format["schema"]["enum"], serde_json::json!(["png", "exr", "pfm"]));
+    assert_eq!(
+        format["schema"]["enum"],
+        serde_json::json!(["png", "exr", "pfm"])
+    );
     let tiles = &spec["paths"]["/api/v1/jobs/{id}/tiles"]["get"]["parameters"];
     let names: Vec<&str> = tiles
         .as_array()
@@ -173,7 +188,10 @@ fn the_spec_names_query_parameters_and_security() {
 /// operation ids, security requirements naming no scheme.
 fn problems(doc: &Value) -> Vec<String> {
     let mut out = Vec::new();
-    if !doc["openapi"].as_str().is_some_and(|v| v.starts_with("3.1.")) {
+    if !doc["openapi"]
+        .as_str()
+        .is_some_and(|v| v.starts_with("3.1."))
+    {
         out.push(format!("openapi is {}", doc["openapi"]));
     }
     fn refs<'a>(v: &'a Value, found: &mut Vec<&'a str>) {
@@ -191,9 +209,7 @@ fn problems(doc: &Value) -> Vec<String> {
     let mut found = Vec::new();
     refs(doc, &mut found);
     for r in found {
-        let target = r
-            .strip_prefix('#')
-            .and_then(|pointer| doc.pointer(pointer));
+        let target = r.strip_prefix('#').and_then(|pointer| doc.pointer(pointer));
         if target.is_none() {
             out.push(format!("$ref {r} resolves to nothing"));
         }
@@ -231,7 +247,12 @@ fn problems(doc: &Value) -> Vec<String> {
                 other => out.push(format!("{method} {path}: operationId {other:?}")),
             }
             for requirement in op["security"].as_array().into_iter().flatten() {
-                for name in requirement.as_object().into_iter().flatten().map(|(k, _)| k) {
+                for name in requirement
+                    .as_object()
+                    .into_iter()
+                    .flatten()
+                    .map(|(k, _)| k)
+                {
                     if !schemes[name].is_object() {
                         out.push(format!("{method} {path}: no security scheme {name}"));
                     }
@@ -248,7 +269,10 @@ fn the_spec_validates() {
     // oas3 deserialises OpenAPI 3.1 into its typed model: required fields, known types.
     let typed = oas3::from_json(&json).expect("an OpenAPI 3.1 document");
     assert!(typed.openapi.starts_with("3.1"), "{}", typed.openapi);
-    assert_eq!(typed.paths.as_ref().map(|p| p.len()), Some(spec()["paths"].as_object().unwrap().len()));
+    assert_eq!(
+        typed.paths.as_ref().map(|p| p.len()),
+        Some(spec()["paths"].as_object().unwrap().len())
+    );
     let doc = spec();
     assert_eq!(problems(&doc), Vec::<String>::new());
 
@@ -263,7 +287,9 @@ fn the_spec_validates() {
         .any(|p| p.contains("#/components/schemas/ApiError")));
     let mut broken = doc.clone();
     broken["paths"]["/api/v1/jobs/{id}"]["get"]["parameters"] = Value::Array(vec![]);
-    assert!(problems(&broken).iter().any(|p| p.contains("path parameter id")));
+    assert!(problems(&broken)
+        .iter()
+        .any(|p| p.contains("path parameter id")));
     let mut broken = doc.clone();
     broken["components"]["securitySchemes"]
         .as_object_mut()
@@ -294,7 +320,10 @@ async fn metrics_take_either_token_and_nothing_else_does_the_metrics_token() {
         assert_eq!(status, StatusCode::OK, "{token}");
         assert_eq!(media, crate::metrics::CONTENT_TYPE);
         let text = String::from_utf8(body).unwrap();
-        assert!(text.contains("tessera_tiles{state=\"queued\"} 0\n"), "{text}");
+        assert!(
+            text.contains("tessera_tiles{state=\"queued\"} 0\n"),
+            "{text}"
+        );
     }
     for token in [None, Some("wrong")] {
         let (status, media, body) = call(&app, "GET", "/metrics", token).await;
@@ -312,7 +341,10 @@ async fn metrics_take_either_token_and_nothing_else_does_the_metrics_token() {
     // The metrics listener's router: /metrics without a token, and nothing else.
     let scrape = metrics_router(farm);
     let (status, media, _) = call(&scrape, "GET", "/metrics", None).await;
-    assert_eq!((status, media.as_str()), (StatusCode::OK, crate::metrics::CONTENT_TYPE));
+    assert_eq!(
+        (status, media.as_str()),
+        (StatusCode::OK, crate::metrics::CONTENT_TYPE)
+    );
     let (status, _, _) = call(&scrape, "GET", "/api/v1/jobs", None).await;
     assert_eq!(status, StatusCode::NOT_FOUND);
 }

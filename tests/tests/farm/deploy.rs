@@ -607,7 +607,9 @@ async fn the_autoscalers_queries_read_the_coordinators_metrics() {
     assert_eq!(status(http.get(&metrics_url)).await.as_u16(), 401);
     let jobs_url = format!("{}/api/v1/jobs", coord.url);
     assert_eq!(
-        status(http.get(&jobs_url).bearer_auth("scaler-token")).await.as_u16(),
+        status(http.get(&jobs_url).bearer_auth("scaler-token"))
+            .await
+            .as_u16(),
         401,
         "the metrics token opens nothing else"
     );
@@ -640,7 +642,9 @@ async fn the_autoscalers_queries_read_the_coordinators_metrics() {
     );
     assert!(open.contains("process_resident_memory_bytes "), "{open}");
     assert_eq!(
-        status(http.get(format!("{open_url}/api/v1/jobs"))).await.as_u16(),
+        status(http.get(format!("{open_url}/api/v1/jobs")))
+            .await
+            .as_u16(),
         404
     );
 }
