@@ -28,6 +28,7 @@ use tokio::sync::{watch, OwnedSemaphorePermit, Semaphore};
 use tokio::time::Instant;
 use tower::ServiceExt;
 
+use crate::api::Auth;
 use crate::config::ConnectionLimits;
 use crate::farm::Farm;
 
@@ -43,11 +44,49 @@ pub async fn serve(
     token: Option<String>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
+    serve_with(listener, farm, Auth::from(token), shutdown).await
+}
+
+/// [`serve`] with credentials beyond the API token (`--metrics-token`).
+pub async fn serve_with(
+    listener: TcpListener,
+    farm: Arc<Farm>,
+    auth: Auth,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    let reaper = tokio::spawn(reap(farm.clone()));
+    let app = crate::api::router(farm.clone(), &auth);
     let limits = farm.config().connections.clone();
+    // Stopping the farm ends long polls (204), so their connections can finish.
+    let stopping = farm.clone();
+    serve_router(listener, app, limits, shutdown, move || stopping.stop()).await;
+    reaper.abort();
+    Ok(())
+}
+
+/// Serves `/metrics` alone, without a token, on `listener` (`--metrics-listen`) until
+/// `shutdown` resolves, under the same connection limits as the API.
+pub async fn serve_metrics(
+    listener: TcpListener,
+    farm: Arc<Farm>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) {
+    let limits = farm.config().connections.clone();
+    let app = crate::api::metrics_router(farm);
+    serve_router(listener, app, limits, shutdown, || ()).await;
+}
+
+/// Serves `app` on `listener`, each connection bounded by `limits`, until `shutdown` resolves;
+/// then calls `on_stop` and returns once in-flight requests have finished.
+async fn serve_router(
+    listener: TcpListener,
+    app: Router,
+    limits: ConnectionLimits,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+    on_stop: impl FnOnce(),
+) {
     let max_connections = connection_cap(limits.max_connections, descriptor_limit());
     tracing::debug!("serving at most {max_connections} connections at once");
-    let reaper = tokio::spawn(reap(farm.clone()));
-    let app = crate::api::router(farm.clone(), token.as_deref());
     let permits = Arc::new(Semaphore::new(max_connections));
     // Connections watch `stop` to finish gracefully; each holds a `live` receiver, so
     // `live_tx.closed()` resolves once the last one has ended.
@@ -74,12 +113,10 @@ pub async fn serve(
         ));
     }
     drop(listener);
-    farm.stop();
+    on_stop();
     let _ = stop_tx.send(true);
     drop(live_rx);
     live_tx.closed().await;
-    reaper.abort();
-    Ok(())
 }
 
 /// The connections to serve at once: as configured, but at most three quarters of the

@@ -6,13 +6,17 @@
 //! - the tile pixel wire format ([`pixels_to_bytes`], [`pixels_from_bytes`]), which is also the
 //!   coordinator's tile file format;
 //! - content hashes ([`hash_hex`]) that address scenes and assets;
-//! - with the `client` feature, [`client`]: a typed HTTP client.
+//! - with the `client` feature, [`client`]: a typed HTTP client;
+//! - with the `openapi` feature, [`openapi`]: the API as an OpenAPI 3.1 document, generated
+//!   from the route table and these types.
 //!
 //! `docs/api.md` is the prose version. The crate compiles neither axum nor SQLite, so a worker
 //! links only what it needs.
 
 #[cfg(feature = "client")]
 pub mod client;
+#[cfg(feature = "openapi")]
+pub mod openapi;
 pub mod routes;
 
 use serde::{Deserialize, Serialize};
@@ -44,6 +48,7 @@ pub const PART_SCENE: &str = "scene";
 pub const CONTENT_TYPE_BLOB_REF: &str = "application/vnd.tessera.blob-ref";
 
 /// What a job renders besides its scene: the JSON of the `job` part.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct JobSpec {
@@ -78,6 +83,7 @@ impl Default for JobSpec {
     }
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum JobState {
@@ -121,6 +127,7 @@ impl JobState {
 }
 
 /// One tile's failure on one worker.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TileFailure {
     pub tile: u32,
@@ -133,6 +140,7 @@ pub struct TileFailure {
 }
 
 /// A job's progress, as `GET /jobs/{id}` reports it.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobInfo {
     pub id: u64,
@@ -157,6 +165,7 @@ pub struct JobInfo {
 }
 
 /// A tile's state on a job's tile map.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum TileState {
@@ -175,6 +184,7 @@ pub enum TileState {
 pub const MAX_TILE_PAGE: u32 = 4096;
 
 /// One page of a job's tile map, `GET /jobs/{id}/tiles?offset=&limit=`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TilePage {
     /// Every tile of the job (all frames), so a reader knows when it has seen them all.
@@ -187,6 +197,7 @@ pub struct TilePage {
 }
 
 /// One tile of a job, as `GET /jobs/{id}/tiles` and the `tile` event report it.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TileInfo {
     pub job_id: u64,
@@ -204,6 +215,7 @@ pub struct TileInfo {
 /// Where a job's camera stands: its override, or the scene's own camera. The look-at point
 /// of a scene camera is the point of its view axis nearest the origin (at least one unit
 /// ahead), the pivot a viewer orbits around.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JobCamera {
     pub position: [f64; 3],
@@ -215,6 +227,7 @@ pub struct JobCamera {
     pub from_scene: bool,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum WorkerState {
@@ -227,6 +240,7 @@ pub enum WorkerState {
 }
 
 /// The lease a worker holds.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct WorkerLease {
     pub job_id: u64,
@@ -234,6 +248,7 @@ pub struct WorkerLease {
 }
 
 /// One worker as the coordinator knows it (since the coordinator started).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WorkerInfo {
     /// The id the coordinator issued when the worker registered.
@@ -259,6 +274,7 @@ pub const EVENT_WORKERS: &str = "workers";
 pub const EVENT_RESYNC: &str = "resync";
 
 /// `POST /workers`: a worker process introduces itself before asking for tiles.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WorkerRegistration {
@@ -270,6 +286,7 @@ pub struct WorkerRegistration {
 pub const MAX_WORKER_NAME: usize = 200;
 
 /// The answer to a registration: the identity every lease request carries.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct WorkerIdentity {
     /// Issued by the coordinator and never issued twice, so two processes sharing a name
@@ -279,6 +296,7 @@ pub struct WorkerIdentity {
 }
 
 /// `POST /leases`: ask for a tile. Asking again while holding a lease answers the same lease.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct LeaseRequest {
     /// The id from `POST /workers`: leases, failures and metrics are keyed by it.
@@ -290,6 +308,7 @@ pub struct LeaseRequest {
 }
 
 /// A tile assignment. Every later message about it carries `lease_id`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Lease {
     pub lease_id: u64,
@@ -304,6 +323,7 @@ pub struct Lease {
 }
 
 /// The answer to a heartbeat: the lease's new expiry.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct LeaseStatus {
     pub expires_in_ms: u64,
@@ -311,6 +331,7 @@ pub struct LeaseStatus {
 
 /// The answer to a tile's accepted pixels: the job's progress. (A result for a tile that
 /// another worker finished first gets 409 like any stale lease: the first result wins.)
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Completion {
     pub tiles_done: u32,
@@ -318,6 +339,7 @@ pub struct Completion {
 }
 
 /// `POST /leases/{id}/failure`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FailureReport {
     pub error: String,
@@ -328,6 +350,7 @@ pub struct FailureReport {
 }
 
 /// What a worker needs to load a job's scene: every file by content hash.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Bundle {
     pub job_id: u64,
@@ -336,6 +359,7 @@ pub struct Bundle {
     pub assets: Vec<BundleFile>,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct BundleFile {
     /// The path exactly as the scene writes it.
@@ -346,6 +370,7 @@ pub struct BundleFile {
 }
 
 /// Every 4xx/5xx JSON body. Scene errors carry their location.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ApiError {
     pub error: String,

@@ -54,6 +54,7 @@ pub enum ParseError {
 
 /// A camera placed by position, look-at point and up vector, replacing the scene's camera.
 /// The scene's vertical field of view and clip planes are kept.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CameraOverride {
     pub position: [f64; 3],
@@ -68,6 +69,7 @@ fn default_up() -> [f64; 3] {
 
 /// Caustic photon mapping requested by the render rather than the scene (see `photon.rs`).
 /// The default follows the scene: caustics are on exactly when it has a `<caustics>` element.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct CausticsSettings {
@@ -114,6 +116,7 @@ impl CausticsSettings {
 }
 
 /// Everything besides the scene that decides a rendered pixel.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RenderSettings {
@@ -186,6 +189,7 @@ impl RenderSettings {
 }
 
 /// A rectangle of pixels; (x, y) is its top-left corner with y counted from the image's top row.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct TileRect {
     pub x: u32,
@@ -227,6 +231,7 @@ impl TileRect {
 }
 
 /// An inclusive range of frames of an animated scene, written `A..B` on command lines.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FrameRange {
     pub first: u32,

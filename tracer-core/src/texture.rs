@@ -5,6 +5,7 @@ use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 /// How textures are sampled between texels.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum TextureFilter {

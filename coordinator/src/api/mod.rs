@@ -8,6 +8,8 @@ mod dashboard;
 mod events;
 mod jobs;
 mod leases;
+#[cfg(test)]
+mod spec_tests;
 mod workers;
 
 use std::sync::Arc;
@@ -18,7 +20,7 @@ use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post, put, MethodRouter};
 use axum::{Json, Router};
-use protocol::routes::{RouteId, ROUTES};
+use protocol::routes::{Access, RouteId, ROUTES};
 use protocol::{ApiError, API_PREFIX};
 use sha2::{Digest, Sha256};
 use subtle::ConstantTimeEq;
@@ -26,15 +28,42 @@ use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use crate::farm::{Farm, FarmError};
 
+/// Who may call what: the API's bearer token and the scrape-only metrics token. A coordinator
+/// without either answers everyone (it is then bound to loopback, or `--insecure`).
+#[derive(Clone, Debug, Default)]
+pub struct Auth {
+    /// `--token`: every route but the open ones.
+    pub token: Option<String>,
+    /// `--metrics-token`: `/metrics` only (the main token works there too).
+    pub metrics_token: Option<String>,
+}
+
+impl From<Option<String>> for Auth {
+    fn from(token: Option<String>) -> Self {
+        Auth {
+            token,
+            metrics_token: None,
+        }
+    }
+}
+
+fn digest(token: &str) -> [u8; 32] {
+    Sha256::digest(token.as_bytes()).into()
+}
+
 /// What every handler shares.
 pub struct App {
     pub farm: Arc<Farm>,
     /// SHA-256 of the bearer token, when one is required. Comparing digests in constant time
     /// also hides the token's length.
     token_digest: Option<[u8; 32]>,
+    /// SHA-256 of the metrics token, when there is one.
+    metrics_digest: Option<[u8; 32]>,
     /// Turns at reading an upload or building a scene: each can take the memory of a whole
     /// scene, so only a few run at once and the rest wait (`ConnectionLimits::max_scene_builds`).
     scene_builds: Arc<Semaphore>,
+    /// `GET /api/v1/openapi.json`, generated once.
+    openapi: axum::body::Bytes,
 }
 
 impl App {
@@ -137,17 +166,26 @@ async fn unauthorized(req: Request, limit: usize, message: &str) -> Response {
     Failure(StatusCode::UNAUTHORIZED, ApiError::new(message)).into_response()
 }
 
-async fn authenticate(State(app): AppState, req: Request, next: Next) -> Response {
-    if let Some(expected) = &app.token_digest {
+/// Passes requests that carry one of `accepted` (digests of tokens) as their bearer token, or
+/// any request when nothing is accepted because no token is set.
+async fn check_token(app: &App, accepted: &[[u8; 32]], req: Request, next: Next) -> Response {
+    if !accepted.is_empty() {
         let given = req
             .headers()
             .get(header::AUTHORIZATION)
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.strip_prefix("Bearer "))
-            .map(|t| -> [u8; 32] { Sha256::digest(t.trim().as_bytes()).into() });
+            .map(|t| digest(t.trim()));
         let problem = match given {
             None => Some("this coordinator needs an 'Authorization: Bearer <token>' header"),
-            Some(digest) if !bool::from(digest.ct_eq(expected)) => Some("wrong bearer token"),
+            // Every candidate is compared, so the time taken does not say which one matched.
+            Some(given)
+                if !accepted
+                    .iter()
+                    .fold(false, |hit, d| hit | bool::from(given.ct_eq(d))) =>
+            {
+                Some("wrong bearer token")
+            }
             Some(_) => None,
         };
         if let Some(message) = problem {
@@ -158,14 +196,37 @@ async fn authenticate(State(app): AppState, req: Request, next: Next) -> Respons
     next.run(req).await
 }
 
+async fn authenticate(State(app): AppState, req: Request, next: Next) -> Response {
+    let accepted: Vec<[u8; 32]> = app.token_digest.into_iter().collect();
+    check_token(&app, &accepted, req, next).await
+}
+
+/// `/metrics`: the main token or the metrics token.
+async fn authenticate_scrape(State(app): AppState, req: Request, next: Next) -> Response {
+    let accepted: Vec<[u8; 32]> = app
+        .token_digest
+        .into_iter()
+        .chain(app.metrics_digest)
+        .collect();
+    check_token(&app, &accepted, req, next).await
+}
+
 async fn healthz() -> &'static str {
     "ok\n"
 }
 
 async fn metrics(State(app): AppState) -> Response {
     (
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        [(header::CONTENT_TYPE, crate::metrics::CONTENT_TYPE)],
         app.farm.metrics_text(),
+    )
+        .into_response()
+}
+
+async fn openapi(State(app): AppState) -> Response {
+    (
+        [(header::CONTENT_TYPE, "application/json")],
+        app.openapi.clone(),
     )
         .into_response()
 }
@@ -240,42 +301,72 @@ fn handler(id: RouteId) -> MethodRouter<Arc<App>> {
         RouteId::Heartbeat => post(leases::heartbeat),
         RouteId::Pixels => put(leases::complete),
         RouteId::Failure => post(leases::fail),
+        RouteId::OpenApi => get(openapi),
         RouteId::Healthz => get(healthz),
         RouteId::Metrics => get(metrics),
     }
 }
 
-/// The whole API. `/healthz` and the dashboard's static files answer without a token
-/// (liveness probes carry none, the page asks for it, and neither reveals anything); every
-/// other route needs it when one is set.
-pub fn router(farm: Arc<Farm>, token: Option<&str>) -> Router {
+/// The whole API. The routes the table marks [`Access::Open`] (`/healthz`, the OpenAPI document)
+/// and the dashboard's static files answer without a token (probes carry none, the page asks for
+/// it, and none reveals anything); `/metrics` takes the token or the metrics token; every other
+/// route needs the token when one is set.
+pub fn router(farm: Arc<Farm>, auth: &Auth) -> Router {
     let limit = farm.config().limits.max_upload_bytes;
-    let scene_builds = farm.config().connections.max_scene_builds.max(1);
-    let app = Arc::new(App {
-        farm,
-        token_digest: token.map(|t| Sha256::digest(t.as_bytes()).into()),
-        scene_builds: Arc::new(Semaphore::new(scene_builds)),
-    });
-    let (mut api, mut guarded, mut open) = (Router::new(), Router::new(), Router::new());
+    let app = app(farm, auth);
+    let (mut api, mut guarded, mut scrape, mut open) =
+        (Router::new(), Router::new(), Router::new(), Router::new());
     for route in ROUTES {
         let method_router = handler(route.id);
-        if route.id == RouteId::Healthz {
-            open = open.route(route.path, method_router);
-        } else if route.prefixed {
-            api = api.route(route.path, method_router);
-        } else {
-            guarded = guarded.route(route.path, method_router);
+        match (route.access, route.prefixed) {
+            (Access::Open, _) => open = open.route(&route.full_path(), method_router),
+            (Access::MetricsToken, _) => scrape = scrape.route(&route.full_path(), method_router),
+            (Access::Token, true) => api = api.route(route.path, method_router),
+            (Access::Token, false) => guarded = guarded.route(route.path, method_router),
         }
     }
     let guarded = guarded
         .nest(API_PREFIX, api)
         .route_layer(middleware::from_fn_with_state(app.clone(), authenticate));
+    let scrape = scrape.route_layer(middleware::from_fn_with_state(
+        app.clone(),
+        authenticate_scrape,
+    ));
     open.merge(dashboard::routes())
         .merge(guarded)
+        .merge(scrape)
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(limit))
         .layer(middleware::from_fn(json_errors))
         .with_state(app)
+}
+
+/// `/metrics` alone and without a token, for `--metrics-listen`: an address only scrapers reach.
+pub fn metrics_router(farm: Arc<Farm>) -> Router {
+    let limit = farm.config().limits.max_upload_bytes.min(1 << 16);
+    let app = app(farm, &Auth::default());
+    let path = ROUTES
+        .iter()
+        .find(|r| r.id == RouteId::Metrics)
+        .expect("the table has /metrics")
+        .full_path();
+    Router::new()
+        .route(&path, handler(RouteId::Metrics))
+        .fallback(not_found)
+        .layer(DefaultBodyLimit::max(limit))
+        .layer(middleware::from_fn(json_errors))
+        .with_state(app)
+}
+
+fn app(farm: Arc<Farm>, auth: &Auth) -> Arc<App> {
+    let scene_builds = farm.config().connections.max_scene_builds.max(1);
+    Arc::new(App {
+        farm,
+        token_digest: auth.token.as_deref().map(digest),
+        metrics_digest: auth.metrics_token.as_deref().map(digest),
+        scene_builds: Arc::new(Semaphore::new(scene_builds)),
+        openapi: protocol::openapi::json().into(),
+    })
 }
 
 #[cfg(test)]

@@ -29,6 +29,14 @@ pub struct ServeArgs {
     /// Require `Authorization: Bearer <token>` on every API call.
     #[arg(long, env = "TESSERA_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// A second bearer token that `/metrics` accepts besides --token, and nothing else does: give
+    /// it to scrapers (Prometheus, KEDA) instead of the token that submits jobs.
+    #[arg(long, env = "TESSERA_METRICS_TOKEN", hide_env_values = true)]
+    pub metrics_token: Option<String>,
+    /// Also serve `/metrics`, without any token, on this address (e.g. 0.0.0.0:9464, reached
+    /// only by the scrapers' network); its actual address is printed as `metrics on http://…`.
+    #[arg(long, env = "TESSERA_METRICS_LISTEN")]
+    pub metrics_listen: Option<String>,
     /// Allow a non-loopback listen address without a token.
     #[arg(long, env = "TESSERA_INSECURE", value_parser = FalseyValueParser::new())]
     pub insecure: bool,
@@ -137,6 +145,13 @@ impl ServeArgs {
     }
 }
 
+async fn resolve(listen: &str) -> Result<SocketAddr, String> {
+    match tokio::net::lookup_host(listen).await.map(|mut a| a.next()) {
+        Ok(Some(addr)) => Ok(addr),
+        _ => Err(format!("cannot resolve the listen address {listen:?}")),
+    }
+}
+
 /// `text` percent-encoded for a URL fragment (the dashboard decodes it).
 fn fragment(text: &str) -> String {
     text.bytes()
@@ -180,21 +195,23 @@ pub fn run(args: ServeArgs) -> ExitCode {
         Err(e) => return fail(e),
     };
     runtime.block_on(async move {
-        let addr = match tokio::net::lookup_host(&args.listen)
-            .await
-            .map(|mut a| a.next())
-        {
-            Ok(Some(addr)) => addr,
-            _ => {
-                return fail(format!(
-                    "cannot resolve the listen address {:?}",
-                    args.listen
-                ))
-            }
+        let addr = match resolve(&args.listen).await {
+            Ok(addr) => addr,
+            Err(e) => return fail(e),
         };
         if let Err(e) = check_exposure(addr, args.token.as_deref(), args.insecure) {
             return fail(e);
         }
+        if args.metrics_token.as_deref().is_some_and(str::is_empty) {
+            return fail("the metrics token is empty".into());
+        }
+        let metrics_addr = match &args.metrics_listen {
+            Some(listen) => match resolve(listen).await {
+                Ok(addr) => Some(addr),
+                Err(e) => return fail(e),
+            },
+            None => None,
+        };
         let farm = match Farm::open(&args.data_dir, config, Arc::new(SystemClock)) {
             Ok(f) => f,
             Err(e) => return fail(format!("opening {}: {e}", args.data_dir.display())),
@@ -202,6 +219,13 @@ pub fn run(args: ServeArgs) -> ExitCode {
         let listener = match tokio::net::TcpListener::bind(addr).await {
             Ok(l) => l,
             Err(e) => return fail(format!("cannot listen on {addr}: {e}")),
+        };
+        let metrics_listener = match metrics_addr {
+            Some(addr) => match tokio::net::TcpListener::bind(addr).await {
+                Ok(l) => Some(l),
+                Err(e) => return fail(format!("cannot listen on {addr} for metrics: {e}")),
+            },
+            None => None,
         };
         let local = listener
             .local_addr()
@@ -218,6 +242,11 @@ pub fn run(args: ServeArgs) -> ExitCode {
             None => writeln!(out, "dashboard: http://{local}/"),
         }
         .ok();
+        if let Some(l) = &metrics_listener {
+            if let Ok(a) = l.local_addr() {
+                let _ = writeln!(out, "metrics on http://{a}/metrics (no token)");
+            }
+        }
         let _ = out.flush();
         drop(out);
         if let Some(n) = descriptors {
@@ -233,7 +262,30 @@ pub fn run(args: ServeArgs) -> ExitCode {
                 ""
             }
         );
-        match crate::server::serve(listener, farm, args.token, super::stop_signal()).await {
+        // One stop signal ends both listeners.
+        let (stop_tx, mut stop_rx) = tokio::sync::watch::channel(false);
+        let metrics_task = metrics_listener.map(|l| {
+            let mut stop = stop_rx.clone();
+            tokio::spawn(crate::server::serve_metrics(l, farm.clone(), async move {
+                let _ = stop.wait_for(|s| *s).await;
+            }))
+        });
+        tokio::spawn(async move {
+            super::stop_signal().await;
+            let _ = stop_tx.send(true);
+        });
+        let auth = crate::api::Auth {
+            token: args.token,
+            metrics_token: args.metrics_token,
+        };
+        let served = crate::server::serve_with(listener, farm, auth, async move {
+            let _ = stop_rx.wait_for(|s| *s).await;
+        })
+        .await;
+        if let Some(task) = metrics_task {
+            let _ = task.await;
+        }
+        match served {
             Ok(()) => {
                 tracing::info!("stopped");
                 ExitCode::SUCCESS

@@ -62,7 +62,7 @@ impl Farm {
             lease.worker_id,
             report.error
         );
-        self.metrics.tile_failures.fetch_add(1, Ordering::Relaxed);
+        self.metrics.tile_failed(lease.worker_id);
         if failed.requeued {
             self.work.notify_waiters();
         }

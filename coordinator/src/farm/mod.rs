@@ -368,7 +368,7 @@ impl Farm {
             .list(now, silent_limit, |id| state.worker_lease(id))
     }
 
-    /// Prometheus text: counters plus gauges computed from the current state.
+    /// OpenMetrics text: counters plus gauges computed from the current state.
     pub fn metrics_text(&self) -> String {
         let now = self.now_ms();
         let state = self.lock();
@@ -393,7 +393,7 @@ impl Farm {
             workers_active,
         };
         drop(state);
-        self.metrics.render(&gauges)
+        self.metrics.render(&gauges, &self.workers())
     }
 }
 

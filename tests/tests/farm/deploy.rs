@@ -553,13 +553,12 @@ fn select_sample(metrics: &str, selector: &(String, Vec<(String, String)>)) -> f
 }
 
 /// What KEDA's metrics-api scaler does: `GET /metrics` with the bearer token.
-async fn scrape(url: &str, token: &str) -> String {
-    let resp = reqwest::Client::new()
-        .get(format!("{url}/metrics"))
-        .bearer_auth(token)
-        .send()
-        .await
-        .unwrap();
+async fn scrape(url: &str, token: Option<&str>) -> String {
+    let mut req = reqwest::Client::new().get(format!("{url}/metrics"));
+    if let Some(token) = token {
+        req = req.bearer_auth(token);
+    }
+    let resp = req.send().await.unwrap();
     assert!(resp.status().is_success(), "{resp:?}");
     resp.text().await.unwrap()
 }
@@ -580,14 +579,41 @@ async fn the_autoscalers_queries_read_the_coordinators_metrics() {
         })
         .expect("a trigger on tessera_tiles{state=\"queued\"}");
     let tmp = tempfile::tempdir().unwrap();
+    // The scaler holds the scrape-only metrics token (deploy/kubernetes/autoscaling.yaml), and
+    // a second listener serves the same text without any token.
+    let scrape_port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let metrics_listen = format!("127.0.0.1:{scrape_port}");
     let coord = start_coordinator(
         &tmp.path().join("data"),
         0,
-        &["--token", "scaler-token"],
+        &[
+            "--token",
+            "submit-token",
+            "--metrics-token",
+            "scaler-token",
+            "--metrics-listen",
+            &metrics_listen,
+        ],
         tmp.path().join("c.log"),
     );
-    let client = Client::new(&coord.url, Some("scaler-token".into())).unwrap();
-    let idle = scrape(&coord.url, "scaler-token").await;
+    let client = Client::new(&coord.url, Some("submit-token".into())).unwrap();
+    let http = reqwest::Client::new();
+    let status = |req: reqwest::RequestBuilder| async move { req.send().await.unwrap().status() };
+    let metrics_url = format!("{}/metrics", coord.url);
+    assert_eq!(status(http.get(&metrics_url)).await.as_u16(), 401);
+    let jobs_url = format!("{}/api/v1/jobs", coord.url);
+    assert_eq!(
+        status(http.get(&jobs_url).bearer_auth("scaler-token"))
+            .await
+            .as_u16(),
+        401,
+        "the metrics token opens nothing else"
+    );
+    let idle = scrape(&coord.url, Some("scaler-token")).await;
     for selector in &selectors {
         assert_eq!(
             select_sample(&idle, selector),
@@ -597,9 +623,28 @@ async fn the_autoscalers_queries_read_the_coordinators_metrics() {
     }
     // No worker: every tile of a job waits in the queue, and the scaler sees them all.
     let job = submit(&client, &course_scene("stacks.scene"), small_spec(1, 40)).await;
-    let busy = scrape(&coord.url, "scaler-token").await;
+    let busy = scrape(&coord.url, Some("scaler-token")).await;
     assert_eq!(
         select_sample(&busy, &selectors[queued]),
         f64::from(job.tiles_total)
+    );
+    // The main token still scrapes; the metrics listener needs none and serves nothing else.
+    let with_main = scrape(&coord.url, Some("submit-token")).await;
+    assert_eq!(
+        select_sample(&with_main, &selectors[queued]),
+        f64::from(job.tiles_total)
+    );
+    let open_url = format!("http://{metrics_listen}");
+    let open = scrape(&open_url, None).await;
+    assert_eq!(
+        select_sample(&open, &selectors[queued]),
+        f64::from(job.tiles_total)
+    );
+    assert!(open.contains("process_resident_memory_bytes "), "{open}");
+    assert_eq!(
+        status(http.get(format!("{open_url}/api/v1/jobs")))
+            .await
+            .as_u16(),
+        404
     );
 }
