@@ -1,5 +1,6 @@
 //! `/leases`: the worker side. Lease requests long-poll; every other call names a lease id
-//! and gets 409 when that lease is no longer live.
+//! and gets 409 when that lease is no longer live. A call that changed the farm is answered
+//! once its change is committed (group commit, see `farm::commits`).
 
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
@@ -54,6 +55,7 @@ pub async fn lease(
             break;
         }
         if let Some(lease) = farm.lease(req.worker_id)? {
+            farm.durable(farm.written()).await?;
             farm.metrics.observe_lease_latency(start.elapsed());
             return Ok(Json(lease).into_response());
         }
@@ -114,6 +116,10 @@ enum Outcome {
     NonFinite(String),
 }
 
+/// Completions up to this size are stored on the async thread: a positioned write of a few
+/// KiB costs less than handing the request to the blocking pool and back.
+const INLINE_COMPLETION: usize = 64 << 10;
+
 pub async fn complete(
     State(app): AppState,
     Path(id): Path<String>,
@@ -121,7 +127,8 @@ pub async fn complete(
 ) -> ApiResult<Json<Completion>> {
     let id = parse_id("lease", &id)?;
     let farm = app.farm.clone();
-    let result = blocking(move || {
+    let inline = body.len() <= INLINE_COMPLETION;
+    let store = move || {
         Ok(match first_non_finite(&body) {
             // Recorded as the worker's failure rather than handed back: a tile that renders
             // NaN on every worker then fails its job after the usual attempts instead of
@@ -138,9 +145,15 @@ pub async fn complete(
             }
             None => farm.complete(id, &body).map(Outcome::Stored),
         })
-    })
-    .await?;
-    match counted(&app, result)? {
+    };
+    let result = if inline {
+        store()?
+    } else {
+        blocking(store).await?
+    };
+    let outcome = counted(&app, result)?;
+    app.farm.durable(app.farm.written()).await?;
+    match outcome {
         Outcome::Stored(done) => Ok(Json(done)),
         Outcome::NonFinite(error) => Err(Failure::bad_request(format!(
             "{error}; refused, and the tile is queued again"
@@ -162,6 +175,7 @@ pub async fn fail(
 pub async fn hand_back(State(app): AppState, Path(id): Path<String>) -> ApiResult<StatusCode> {
     let id = parse_id("lease", &id)?;
     counted(&app, app.farm.hand_back(id))?;
+    app.farm.durable(app.farm.written()).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 

@@ -66,6 +66,7 @@ impl Farm {
                     .started_ms
                     .map_or(0.0, |s| now.saturating_sub(s) as f64 / 1000.0);
                 drop(state);
+                self.flush()?;
                 tracing::info!("job {job_id}: done in {elapsed:.2}s");
                 self.events.send(FarmEvent::Job(job_id));
                 Ok(())
@@ -82,7 +83,7 @@ impl Farm {
                     now,
                     "the job failed",
                 );
-                if ended.is_ok() {
+                if ended.is_ok() && self.flush().is_ok() {
                     self.events.send(FarmEvent::Job(job_id));
                 }
                 Err(e)
@@ -108,9 +109,13 @@ impl Farm {
             Some(frames) => {
                 let mut first = None;
                 for &frame in frames {
-                    let image = self
-                        .files
-                        .assemble(job_id, width, height, &tiles_of(frame))?;
+                    let image = self.files.assemble(
+                        job_id,
+                        width,
+                        height,
+                        grid.tile_size(),
+                        &tiles_of(frame),
+                    )?;
                     let png = image.to_png();
                     self.files.put_frame_image(job_id, frame, &png, &image)?;
                     first.get_or_insert((png, image));
@@ -118,9 +123,13 @@ impl Farm {
                 first.unwrap_or_else(|| (Vec::new(), Image::new(0, 0)))
             }
             None => {
-                let image = self
-                    .files
-                    .assemble(job_id, width, height, &tiles_of(grid.frame(0)))?;
+                let image = self.files.assemble(
+                    job_id,
+                    width,
+                    height,
+                    grid.tile_size(),
+                    &tiles_of(grid.frame(0)),
+                )?;
                 (image.to_png(), image)
             }
         };
@@ -144,7 +153,7 @@ impl Farm {
         frame: Option<u32>,
         format: ImageFormat,
     ) -> Result<Vec<u8>> {
-        let (width, height, tiles, state, stored) = {
+        let (width, height, tile_size, tiles, state, stored) = {
             let state = self.lock();
             let job = state.job(job_id)?;
             let first = job.grid.frame(0);
@@ -177,6 +186,7 @@ impl Farm {
             (
                 job.spec.render.width,
                 job.spec.render.height,
+                job.grid.tile_size(),
                 tiles,
                 job.state,
                 stored,
@@ -214,7 +224,7 @@ impl Farm {
         }
         Ok(self
             .files
-            .assemble(job_id, width, height, &tiles)?
+            .assemble(job_id, width, height, tile_size, &tiles)?
             .encode(format))
     }
 

@@ -13,11 +13,16 @@ impl Farm {
     /// first valid result wins, and the tile's other leases are revoked. The job's last tile
     /// starts its assembly.
     pub fn complete(&self, lease_id: u64, pixels: &[u8]) -> Result<Completion> {
-        let (job_id, tile, rect) = {
+        let (job_id, tile, rect, tile_size) = {
             let state = self.lock();
             let lease = state.live(lease_id)?;
-            let rect = state.job(lease.job_id)?.grid.rect(lease.tile);
-            (lease.job_id, lease.tile, rect)
+            let grid = state.job(lease.job_id)?.grid;
+            (
+                lease.job_id,
+                lease.tile,
+                grid.rect(lease.tile),
+                grid.tile_size(),
+            )
         };
         let expected = rect.pixel_count() * 12;
         if pixels.len() != expected {
@@ -30,7 +35,7 @@ impl Farm {
         }
         // Outside the lock. The lease may lapse meanwhile: then another worker owns the tile,
         // and the file (equal pixels, by determinism) is simply overwritten later.
-        self.files.put_tile(job_id, tile, pixels)?;
+        self.files.put_tile(job_id, tile, tile_size, pixels)?;
         self.tile_writes.fetch_add(1, Ordering::Relaxed);
         let now = self.now_ms();
         let done = self.lock().complete(lease_id, now)?;

@@ -9,13 +9,16 @@
 //! - [`resume`]: the state rebuilt from the data dir at start-up;
 //! - [`workers`]: the worker registry; [`events`]: change notifications.
 //!
+//! - [`commits`]: group commit of the hot transitions (one SQLite commit for many requests).
+//!
 //! [`Farm`] is the front: it owns the lock, the files and the clock, and wakes long-polling
 //! workers. Locking: one std `Mutex` over the state and the database connection; nothing
 //! awaits while it is held, no submission parses, hashes or allocates under it, and every
-//! critical section is a few map operations and at most one small SQLite transaction. File
-//! I/O (tile pixels, images) happens outside it.
+//! critical section is a few map operations and at most one small SQLite transaction (or a
+//! savepoint in the open batch). File I/O (tile pixels, images) happens outside it.
 
 mod assembly;
+mod commits;
 mod completion;
 mod events;
 mod job;
@@ -90,6 +93,7 @@ pub struct Farm {
     pub metrics: Metrics,
     tile_writes: AtomicU64,
     events: Events,
+    commits: commits::Commits,
     /// This farm, for the assembly threads it starts.
     me: Weak<Farm>,
     assemblies: Mutex<Vec<JoinHandle<()>>>,
@@ -126,9 +130,12 @@ impl Farm {
             metrics: Metrics::default(),
             tile_writes: AtomicU64::new(0),
             events: Events::default(),
+            commits: commits::Commits::default(),
             me: me.clone(),
             assemblies: Mutex::new(Vec::new()),
         });
+        // What resuming changed is stored before anything is served.
+        farm.flush()?;
         // Jobs whose last tile landed just before a crash.
         for id in finished {
             farm.start_assembly(id);
@@ -206,6 +213,7 @@ impl Farm {
         }
         let now = self.now_ms();
         let identity = self.lock().register(name, now, self.config.max_workers)?;
+        self.flush()?;
         tracing::info!("worker {} registered as {name}", identity.worker_id);
         Ok(identity)
     }
@@ -265,6 +273,7 @@ impl Farm {
         let id = state.add_job(&stored, job)?;
         let info = state.job(id)?.info(now);
         drop(state);
+        self.flush()?;
         tracing::info!(
             "job {id}: {} queued, {} tiles of at most {}x{}",
             info.name,
@@ -289,6 +298,7 @@ impl Farm {
         )?;
         let info = state.job(job_id)?.info(now);
         drop(state);
+        self.flush()?;
         tracing::info!("job {job_id}: cancelled");
         self.events.send(FarmEvent::Job(job_id));
         Ok(info)
@@ -301,6 +311,7 @@ impl Farm {
         state.retry(job_id)?;
         let info = state.job(job_id)?.info(now);
         drop(state);
+        self.flush()?;
         self.work.notify_waiters();
         self.events.send(FarmEvent::Job(job_id));
         Ok(info)

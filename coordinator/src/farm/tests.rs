@@ -254,9 +254,13 @@ fn a_job_whose_image_cannot_be_built_fails_instead_of_running_forever() {
             .complete(lease.lease_id, &blank(lease.rect, 0.5))
             .unwrap();
         if i == 2 {
-            // Lost before the last tile lands and assembly starts.
-            let tile = f._dir.path().join(format!("jobs/{}/tiles/2.f32", job.id));
-            std::fs::remove_file(&tile).unwrap();
+            // Lost before the last tile lands and assembly starts (the last tile's write
+            // makes the file again, with a hole where the others were).
+            let tiles = f
+                ._dir
+                .path()
+                .join(format!("jobs/{}/tiles/pixels.f32", job.id));
+            std::fs::remove_file(&tiles).unwrap();
         }
     }
     f.farm.wait_for_assemblies();
@@ -523,7 +527,7 @@ fn a_job_whose_last_tile_landed_before_a_crash_is_assembled_on_start() {
     // The crash came after the last tile's pixels and row were stored, before assembly.
     let files = Files::open(dir.path()).unwrap();
     files
-        .put_tile(job.id, 3, &blank(TileRect::new(8, 8, 8, 8), 0.5))
+        .put_tile(job.id, 3, 8, &blank(TileRect::new(8, 8, 8, 8), 0.5))
         .unwrap();
     Db::open(&dir.path().join("tessera.db"))
         .unwrap()

@@ -47,6 +47,11 @@ impl TileGrid {
         self.per_frame as u64 * self.frames as u64
     }
 
+    /// The side of a full tile (edge tiles are smaller).
+    pub fn tile_size(&self) -> u32 {
+        self.tile_size
+    }
+
     pub fn per_frame(&self) -> u32 {
         self.per_frame
     }

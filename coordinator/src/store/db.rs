@@ -2,8 +2,14 @@
 //! workers. Numbered migrations run at start-up. One connection, in WAL mode, locked
 //! exclusively so a second coordinator cannot open the same data dir.
 //!
-//! The farm's transitions each call one method here, and each method is one transaction: a
+//! The farm's transitions each call one method here, and each method is one savepoint: a
 //! transition is either stored whole or not at all (and then the farm's memory is untouched).
+//!
+//! Group commit: transitions run inside one open transaction, and [`Db::commit`] commits all
+//! of them at once. The farm answers a request only after the commit that holds its
+//! transition (see `Farm::sync`), so many requests share one commit (a few WAL pages instead
+//! of a few per request). Transitions that take an id from SQLite (jobs, workers) commit on
+//! their own, after the pending ones, so a failed commit can never hand an id out twice.
 //!
 //! Durability: `synchronous=NORMAL` survives a killed process (the kill -9 test) but may lose
 //! the last transactions on power loss; finished tiles then render again, nothing breaks.
@@ -70,6 +76,22 @@ const MIGRATIONS: &[&str] = &[
 
 pub struct Db {
     conn: Connection,
+    /// A batch transaction is open.
+    open: bool,
+    /// Transitions stored so far (committed or in the open batch).
+    written: u64,
+    /// Transitions covered by a commit that succeeded.
+    committed: u64,
+    /// The latest batch whose commit failed, as (first, last) transition numbers.
+    lost: Option<(u64, u64)>,
+}
+
+/// Whether a transition is stored for good.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Durable {
+    Yes,
+    /// Its batch's commit failed: it is not stored.
+    Lost,
 }
 
 /// A jobs row as SQLite returns it, before its JSON and state are parsed.
@@ -175,7 +197,83 @@ impl Db {
             tx.pragma_update(None, "user_version", (i + 1) as i64)?;
             tx.commit()?;
         }
-        Ok(Db { conn })
+        Ok(Db {
+            conn,
+            open: false,
+            written: 0,
+            committed: 0,
+            lost: None,
+        })
+    }
+
+    /// Runs one transition's statements in the open batch (opening it if need be), as a
+    /// savepoint: on error nothing of it stays.
+    fn transition<T>(
+        &mut self,
+        statements: impl FnOnce(&Connection) -> Result<T, StoreError>,
+    ) -> Result<T, StoreError> {
+        if !self.open {
+            self.conn.execute_batch("BEGIN")?;
+            self.open = true;
+        }
+        self.conn.execute_batch("SAVEPOINT transition")?;
+        match statements(&self.conn) {
+            Ok(value) => {
+                self.conn.execute_batch("RELEASE transition")?;
+                self.written += 1;
+                Ok(value)
+            }
+            Err(e) => {
+                if self
+                    .conn
+                    .execute_batch("ROLLBACK TO transition; RELEASE transition")
+                    .is_err()
+                {
+                    // The savepoint cannot be undone alone: the whole batch goes.
+                    self.abandon();
+                }
+                Err(e)
+            }
+        }
+    }
+
+    /// Drops the open batch: its transitions are lost.
+    fn abandon(&mut self) {
+        let _ = self.conn.execute_batch("ROLLBACK");
+        self.open = false;
+        if self.written > self.committed {
+            self.lost = Some((self.committed + 1, self.written));
+        }
+        self.committed = self.written;
+    }
+
+    /// The number of the latest transition stored.
+    pub fn written(&self) -> u64 {
+        self.written
+    }
+
+    /// The latest transition committed (lost ones included) and the latest lost batch.
+    pub fn committed(&self) -> (u64, Option<(u64, u64)>) {
+        (self.committed, self.lost)
+    }
+
+    /// Commits the open batch, if any. On failure every transition in it is lost (and
+    /// [`Db::durable`] says so).
+    pub fn commit(&mut self) -> Result<(), StoreError> {
+        if !self.open {
+            return Ok(());
+        }
+        match self.conn.execute_batch("COMMIT") {
+            Ok(()) => {
+                self.open = false;
+                self.committed = self.written;
+                Ok(())
+            }
+            Err(e) => {
+                self.abandon();
+                Err(e.into())
+            }
+        }
     }
 
     /// Counts coordinator start-ups; lease ids carry it so they never repeat across restarts.
@@ -199,6 +297,7 @@ impl Db {
     /// Inserts a job and its assets; returns its id.
     pub fn insert_job(&mut self, job: &StoredJob) -> Result<u64, StoreError> {
         let spec = serde_json::to_string(&job.spec).expect("a JobSpec always serialises");
+        self.commit()?;
         let tx = self.conn.transaction()?;
         tx.execute(
             "INSERT INTO jobs (name, scene_file, scene_hash, spec, state, created_ms)
@@ -220,6 +319,8 @@ impl Db {
             )?;
         }
         tx.commit()?;
+        self.written += 1;
+        self.committed = self.written;
         Ok(id)
     }
 
@@ -240,7 +341,7 @@ impl Db {
 
     /// A job's new state alone (done after assembly, failed on resume).
     pub fn set_job_state(&mut self, id: u64, row: &JobRow) -> Result<(), StoreError> {
-        Self::update_job(&self.conn, id, row)
+        self.transition(|conn| Self::update_job(conn, id, row))
     }
 
     fn insert_lease_row(conn: &Connection, lease: &StoredLease) -> Result<(), StoreError> {
@@ -265,35 +366,35 @@ impl Db {
         lease: &StoredLease,
         job_started: Option<&JobRow>,
     ) -> Result<(), StoreError> {
-        let tx = self.conn.transaction()?;
-        Self::insert_lease_row(&tx, lease)?;
-        if let Some(row) = job_started {
-            Self::update_job(&tx, lease.job_id, row)?;
-        }
-        tx.commit()?;
-        Ok(())
+        self.transition(|tx| {
+            Self::insert_lease_row(tx, lease)?;
+            if let Some(row) = job_started {
+                Self::update_job(tx, lease.job_id, row)?;
+            }
+            Ok(())
+        })
     }
 
     /// Ends leases without finishing their tiles (handed back, expired).
     pub fn end_leases(&mut self, ids: &[u64]) -> Result<(), StoreError> {
-        let tx = self.conn.transaction()?;
-        for id in ids {
-            tx.prepare_cached("DELETE FROM leases WHERE id = ?1")?
-                .execute([*id as i64])?;
-        }
-        tx.commit()?;
-        Ok(())
+        self.transition(|tx| {
+            for id in ids {
+                tx.prepare_cached("DELETE FROM leases WHERE id = ?1")?
+                    .execute([*id as i64])?;
+            }
+            Ok(())
+        })
     }
 
     /// Records a finished tile and drops every lease on it.
     pub fn complete_tile(&mut self, job_id: u64, tile: u32) -> Result<(), StoreError> {
-        let tx = self.conn.transaction()?;
-        tx.prepare_cached("INSERT OR IGNORE INTO tiles_done (job_id, tile) VALUES (?1, ?2)")?
-            .execute(params![job_id as i64, tile])?;
-        tx.prepare_cached("DELETE FROM leases WHERE job_id = ?1 AND tile = ?2")?
-            .execute(params![job_id as i64, tile])?;
-        tx.commit()?;
-        Ok(())
+        self.transition(|tx| {
+            tx.prepare_cached("INSERT OR IGNORE INTO tiles_done (job_id, tile) VALUES (?1, ?2)")?
+                .execute(params![job_id as i64, tile])?;
+            tx.prepare_cached("DELETE FROM leases WHERE job_id = ?1 AND tile = ?2")?
+                .execute(params![job_id as i64, tile])?;
+            Ok(())
+        })
     }
 
     fn end_job(conn: &Connection, job_id: u64, row: &JobRow) -> Result<(), StoreError> {
@@ -312,59 +413,60 @@ impl Db {
         at_ms: u64,
         job_end: Option<&JobRow>,
     ) -> Result<(), StoreError> {
-        let tx = self.conn.transaction()?;
-        tx.prepare_cached("DELETE FROM leases WHERE id = ?1")?
-            .execute([lease_id as i64])?;
-        tx.prepare_cached(
-            "INSERT INTO tile_failures (job_id, tile, worker, worker_id, error, at_ms)
+        self.transition(|tx| {
+            tx.prepare_cached("DELETE FROM leases WHERE id = ?1")?
+                .execute([lease_id as i64])?;
+            tx.prepare_cached(
+                "INSERT INTO tile_failures (job_id, tile, worker, worker_id, error, at_ms)
              VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-        )?
-        .execute(params![
-            job_id as i64,
-            failure.tile,
-            failure.worker,
-            failure.worker_id as i64,
-            failure.error,
-            at_ms as i64
-        ])?;
-        if let Some(row) = job_end {
-            Self::end_job(&tx, job_id, row)?;
-        }
-        tx.commit()?;
-        Ok(())
+            )?
+            .execute(params![
+                job_id as i64,
+                failure.tile,
+                failure.worker,
+                failure.worker_id as i64,
+                failure.error,
+                at_ms as i64
+            ])?;
+            if let Some(row) = job_end {
+                Self::end_job(tx, job_id, row)?;
+            }
+            Ok(())
+        })
     }
 
     /// A job ends (cancelled, failed): its leases go with it.
     pub fn finish_job(&mut self, job_id: u64, row: &JobRow) -> Result<(), StoreError> {
-        let tx = self.conn.transaction()?;
-        Self::end_job(&tx, job_id, row)?;
-        tx.commit()?;
-        Ok(())
+        self.transition(|tx| Self::end_job(tx, job_id, row))
     }
 
     /// A failed job runs again with fresh failure counts.
     pub fn retry_job(&mut self, job_id: u64, row: &JobRow) -> Result<(), StoreError> {
-        let tx = self.conn.transaction()?;
-        tx.prepare_cached("DELETE FROM tile_failures WHERE job_id = ?1")?
-            .execute([job_id as i64])?;
-        Self::update_job(&tx, job_id, row)?;
-        tx.commit()?;
-        Ok(())
+        self.transition(|tx| {
+            tx.prepare_cached("DELETE FROM tile_failures WHERE job_id = ?1")?
+                .execute([job_id as i64])?;
+            Self::update_job(tx, job_id, row)
+        })
     }
 
     /// Issues a new worker id (never reused, even after [`Db::forget_worker`]).
+    /// Commits at once, with whatever is pending: an id handed out is never rolled back.
     pub fn register_worker(&mut self, name: &str, at_ms: u64) -> Result<u64, StoreError> {
-        self.conn
-            .prepare_cached("INSERT INTO workers (name, registered_ms) VALUES (?1, ?2)")?
-            .execute(params![name, at_ms as i64])?;
-        Ok(self.conn.last_insert_rowid() as u64)
+        let id = self.transition(|conn| {
+            conn.prepare_cached("INSERT INTO workers (name, registered_ms) VALUES (?1, ?2)")?
+                .execute(params![name, at_ms as i64])?;
+            Ok(conn.last_insert_rowid() as u64)
+        })?;
+        self.commit()?;
+        Ok(id)
     }
 
     pub fn forget_worker(&mut self, id: u64) -> Result<(), StoreError> {
-        self.conn
-            .prepare_cached("DELETE FROM workers WHERE id = ?1")?
-            .execute([id as i64])?;
-        Ok(())
+        self.transition(|conn| {
+            conn.prepare_cached("DELETE FROM workers WHERE id = ?1")?
+                .execute([id as i64])?;
+            Ok(())
+        })
     }
 
     pub fn load_workers(&self) -> Result<Vec<StoredWorker>, StoreError> {
@@ -519,6 +621,15 @@ impl Db {
         })?;
         // A row that does not read back is dropped: a lease is only an optimisation.
         Ok(rows.filter_map(Result::ok).collect())
+    }
+}
+
+impl Drop for Db {
+    /// A clean close keeps what is pending (a killed process loses only unanswered requests).
+    fn drop(&mut self) {
+        if let Err(e) = self.commit() {
+            tracing::error!("the last writes could not be committed: {e}");
+        }
     }
 }
 

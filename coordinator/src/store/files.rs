@@ -1,10 +1,18 @@
 //! Files under the data dir: content-addressed blobs (scenes and assets, each stored once),
 //! finished tiles' pixels and finished images (each frame's PNG and, beside it, its linear
-//! f32 pixels, from which EXR and PFM are encoded on request). Every write goes to a temporary name first and
-//! is renamed into place, so a crash never leaves a half-written file under a real name.
+//! f32 pixels, from which EXR and PFM are encoded on request). Blobs and images go to a
+//! temporary name first and are renamed into place, so a crash never leaves a half-written
+//! file under a real name.
+//!
+//! A job's tiles share one sparse file, each at a fixed slot (its index times the slot of a
+//! full tile): a tile costs one positioned write, no file of its own and no rename. Each slot
+//! starts with a header naming its tile, so a slot never written (a hole reads as zeros) or
+//! cut off is an error, not a black tile. A tile is counted done only after its write, so a
+//! killed process never leaves a done tile whose slot was half written.
 
 use std::fs;
 use std::io::{ErrorKind, Write};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -101,10 +109,8 @@ impl Files {
         self.root.join("jobs").join(job_id.to_string())
     }
 
-    fn tile_path(&self, job_id: u64, tile: u32) -> PathBuf {
-        self.job_dir(job_id)
-            .join("tiles")
-            .join(format!("{tile}.f32"))
+    fn tiles_path(&self, job_id: u64) -> PathBuf {
+        self.job_dir(job_id).join("tiles").join("pixels.f32")
     }
 
     pub fn image_path(&self, job_id: u64) -> PathBuf {
@@ -115,16 +121,77 @@ impl Files {
         self.job_dir(job_id).join("image.f32")
     }
 
-    /// Persists a finished tile's pixels (f32 little-endian), before it is acknowledged.
-    pub fn put_tile(&self, job_id: u64, tile: u32, pixels: &[u8]) -> Result<(), StoreError> {
-        self.write_atomic(&self.tile_path(job_id, tile), pixels)
+    /// Persists a finished tile's pixels (f32 little-endian) in its slot, before it is
+    /// acknowledged. `tile_size` is the job's: it sets the slot size.
+    pub fn put_tile(
+        &self,
+        job_id: u64,
+        tile: u32,
+        tile_size: u32,
+        pixels: &[u8],
+    ) -> Result<(), StoreError> {
+        let path = self.tiles_path(job_id);
+        let slot = TileSlot::new(tile, tile_size);
+        if pixels.len() as u64 > slot.pixel_bytes {
+            return Err(StoreError::Corrupt(format!(
+                "tile {tile}: {} bytes of pixels do not fit a {tile_size}x{tile_size} tile",
+                pixels.len()
+            )));
+        }
+        let open = || {
+            fs::OpenOptions::new()
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .open(&path)
+        };
+        let write = || -> std::io::Result<()> {
+            let file = match open() {
+                Err(e) if e.kind() == ErrorKind::NotFound => {
+                    // The job's first tile: its folder does not exist yet.
+                    if let Some(parent) = path.parent() {
+                        fs::create_dir_all(parent)?;
+                    }
+                    open()?
+                }
+                other => other?,
+            };
+            // One write: the header lands with the pixels.
+            let mut record = Vec::with_capacity(TILE_HEADER + pixels.len());
+            record.extend_from_slice(&slot.header(pixels.len()));
+            record.extend_from_slice(pixels);
+            file.write_all_at(&record, slot.offset)
+        };
+        write().map_err(|e| StoreError::io(format!("writing tile {tile} to {}", path.display()), e))
     }
 
-    pub fn tile(&self, job_id: u64, tile: u32, rect: TileRect) -> Result<Image, StoreError> {
-        let path = self.tile_path(job_id, tile);
-        let bytes = fs::read(&path)
-            .map_err(|e| StoreError::io(format!("reading {}", path.display()), e))?;
-        let pixels = pixels_from_bytes(&bytes, rect)
+    pub fn tile(
+        &self,
+        job_id: u64,
+        tile: u32,
+        tile_size: u32,
+        rect: TileRect,
+    ) -> Result<Image, StoreError> {
+        let path = self.tiles_path(job_id);
+        let slot = TileSlot::new(tile, tile_size);
+        let len = rect.pixel_count() * 12;
+        let mut record = vec![0u8; TILE_HEADER + len];
+        let read = fs::File::open(&path).and_then(|f| f.read_exact_at(&mut record, slot.offset));
+        let missing = || StoreError::Corrupt(format!("{}: tile {tile} is missing", path.display()));
+        match read {
+            Ok(()) => {}
+            Err(e) if e.kind() == ErrorKind::UnexpectedEof => return Err(missing()),
+            Err(e) => {
+                return Err(StoreError::io(
+                    format!("reading tile {tile} from {}", path.display()),
+                    e,
+                ))
+            }
+        }
+        if record[..TILE_HEADER] != slot.header(len) {
+            return Err(missing());
+        }
+        let pixels = pixels_from_bytes(&record[TILE_HEADER..], rect)
             .map_err(|e| StoreError::Corrupt(format!("{}: {e}", path.display())))?;
         Image::from_pixels(rect.width, rect.height, pixels)
             .map_err(|e| StoreError::Corrupt(format!("{}: {e}", path.display())))
@@ -137,11 +204,12 @@ impl Files {
         job_id: u64,
         width: u32,
         height: u32,
+        tile_size: u32,
         tiles: &[(u32, TileRect)],
     ) -> Result<Image, StoreError> {
         let tiles = tiles
             .iter()
-            .map(|&(index, rect)| Ok((rect, self.tile(job_id, index, rect)?)));
+            .map(|&(index, rect)| Ok((rect, self.tile(job_id, index, tile_size, rect)?)));
         tracer_core::film::assemble(width, height, tiles)
     }
 
@@ -226,6 +294,37 @@ impl Files {
     }
 }
 
+/// Bytes before a tile's pixels in its slot.
+const TILE_HEADER: usize = 16;
+const TILE_MAGIC: &[u8; 4] = b"TILE";
+
+/// Where a tile lies in its job's pixel file.
+struct TileSlot {
+    tile: u32,
+    offset: u64,
+    pixel_bytes: u64,
+}
+
+impl TileSlot {
+    fn new(tile: u32, tile_size: u32) -> TileSlot {
+        let pixel_bytes = tile_size as u64 * tile_size as u64 * 12;
+        TileSlot {
+            tile,
+            offset: tile as u64 * (TILE_HEADER as u64 + pixel_bytes),
+            pixel_bytes,
+        }
+    }
+
+    /// Magic, tile index and pixel byte count: a hole or another tile's bytes never match.
+    fn header(&self, len: usize) -> [u8; TILE_HEADER] {
+        let mut header = [0u8; TILE_HEADER];
+        header[..4].copy_from_slice(TILE_MAGIC);
+        header[4..8].copy_from_slice(&self.tile.to_le_bytes());
+        header[8..16].copy_from_slice(&(len as u64).to_le_bytes());
+        header
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -259,7 +358,7 @@ mod tests {
             tile.pixels.iter_mut().for_each(|p| *p = i as f32 / 4.0);
             expected.insert(*rect, &tile);
             files
-                .put_tile(7, i as u32, &pixels_to_bytes(&tile.pixels))
+                .put_tile(7, i as u32, 2, &pixels_to_bytes(&tile.pixels))
                 .unwrap();
         }
         let all: Vec<(u32, TileRect)> = rects
@@ -267,7 +366,7 @@ mod tests {
             .enumerate()
             .map(|(i, r)| (i as u32, *r))
             .collect();
-        let assembled = files.assemble(7, 3, 2, &all).unwrap();
+        let assembled = files.assemble(7, 3, 2, 2, &all).unwrap();
         assert_eq!(assembled, expected);
         assert_eq!(files.linear_image(7, 3, 2).unwrap(), None);
         files.put_image(7, b"png", &assembled).unwrap();
@@ -278,8 +377,30 @@ mod tests {
             "a stored image of the wrong size is corrupt, not a panic"
         );
         assert!(
-            files.tile(7, 0, rects[0]).is_err(),
+            files.tile(7, 0, 2, rects[0]).is_err(),
             "tiles are dropped with the image"
+        );
+    }
+
+    #[test]
+    fn a_tile_never_written_is_missing_not_black() {
+        let dir = tempfile::tempdir().unwrap();
+        let files = Files::open(dir.path()).unwrap();
+        let rect = TileRect::new(0, 0, 4, 4);
+        let pixels = pixels_to_bytes(&[0.5; 48]);
+        // Tile 3 extends the file past tile 1's slot, which stays a hole.
+        files.put_tile(1, 3, 4, &pixels).unwrap();
+        files.put_tile(1, 0, 4, &pixels).unwrap();
+        assert_eq!(files.tile(1, 0, 4, rect).unwrap().pixels, vec![0.5; 48]);
+        for missing in [1, 7] {
+            let err = files.tile(1, missing, 4, rect).unwrap_err().to_string();
+            assert!(err.contains(&format!("tile {missing} is missing")), "{err}");
+        }
+        // A tile read with another tile's index is not mistaken for it.
+        assert!(files.tile(1, 3, 4, TileRect::new(0, 0, 4, 2)).is_err());
+        assert!(
+            files.put_tile(1, 2, 2, &pixels).is_err(),
+            "too big for its slot"
         );
     }
 }

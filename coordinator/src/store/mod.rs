@@ -4,7 +4,7 @@
 pub mod db;
 pub mod files;
 
-pub use db::{Db, JobRow, LoadedJob, StoredJob, StoredLease, StoredWorker, UnloadableJob};
+pub use db::{Db, Durable, JobRow, LoadedJob, StoredJob, StoredLease, StoredWorker, UnloadableJob};
 pub use files::Files;
 
 #[derive(Debug, thiserror::Error)]
@@ -18,6 +18,9 @@ pub enum StoreError {
     },
     #[error("corrupt data: {0}")]
     Corrupt(String),
+    /// A change whose batch could not be committed.
+    #[error("{0}")]
+    Lost(String),
 }
 
 impl From<tracer_core::film::ImageError> for StoreError {
