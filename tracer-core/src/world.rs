@@ -277,7 +277,11 @@ impl Uv<'_> {
                 corners: [i0, i1, i2],
                 bary: [_, b1, b2],
             } => corner_lerp(
-                [coords[i0 as usize], coords[i1 as usize], coords[i2 as usize]],
+                [
+                    coords[i0 as usize],
+                    coords[i1 as usize],
+                    coords[i2 as usize],
+                ],
                 b1,
                 b2,
             ),
