@@ -74,7 +74,14 @@ async fn a_worker_killed_mid_job_loses_nothing() {
     );
     assert!(client.image(job.id).await.unwrap() == tracer_png(&scene, &spec, tmp.path()));
     let logs = [doomed.log_text(), survivor.log_text()];
-    assert_eq!(rendered_tiles(&logs, job.id).len() as u32, done.tiles_total);
+    // The killed worker may have delivered its last tile without its log line reaching the
+    // file (kill -9), so one tile may be missing from the logs; none may be extra.
+    let logged = rendered_tiles(&logs, job.id).len() as u32;
+    assert!(
+        logged == done.tiles_total || logged + 1 == done.tiles_total,
+        "{logged} tiles logged of {}",
+        done.tiles_total
+    );
     eprintln!(
         "leases expired: {}",
         metric(&coord.url, "tessera_leases_expired_total").await
