@@ -21,17 +21,27 @@ pub fn intersect_triangle(
     t_min: f64,
     t_max: f64,
 ) -> Option<TriangleHit> {
-    let (kx, ky, kz) = (ray.kx, ray.ky, ray.kz);
-    let a = v0 - ray.origin;
-    let b = v1 - ray.origin;
-    let c = v2 - ray.origin;
+    // The corners' coordinates relative to the origin, permuted into the ray's (kx, ky, kz)
+    // frame: the same differences as `v - origin` taken whole, read by position instead of
+    // through `DVec3`'s index match (a three-way branch per read, 7% of a render).
+    // Padded to four and indexed by k & 3, so that no bounds check is needed either
+    // (`TriangleRay::new` makes kx, ky and kz a permutation of 0, 1, 2).
+    let [kx, ky, kz] = [ray.kx & 3, ray.ky & 3, ray.kz & 3];
+    let o = ray.origin.extend(0.0).to_array();
+    let rel = |v: DVec3| {
+        let v = v.extend(0.0).to_array();
+        [v[kx] - o[kx], v[ky] - o[ky], v[kz] - o[kz]]
+    };
+    let [a_x, a_y, a_z] = rel(v0);
+    let [b_x, b_y, b_z] = rel(v1);
+    let [c_x, c_y, c_z] = rel(v2);
     let s = ray.shear;
-    let ax = a[kx] - s.x * a[kz];
-    let ay = a[ky] - s.y * a[kz];
-    let bx = b[kx] - s.x * b[kz];
-    let by = b[ky] - s.y * b[kz];
-    let cx = c[kx] - s.x * c[kz];
-    let cy = c[ky] - s.y * c[kz];
+    let ax = a_x - s.x * a_z;
+    let ay = a_y - s.y * a_z;
+    let bx = b_x - s.x * b_z;
+    let by = b_y - s.y * b_z;
+    let cx = c_x - s.x * c_z;
+    let cy = c_y - s.y * c_z;
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
@@ -42,7 +52,7 @@ pub fn intersect_triangle(
     if det == 0.0 || !det.is_finite() {
         return None;
     }
-    let t_scaled = u * (s.z * a[kz]) + v * (s.z * b[kz]) + w * (s.z * c[kz]);
+    let t_scaled = u * (s.z * a_z) + v * (s.z * b_z) + w * (s.z * c_z);
     let t = t_scaled / det;
     if !(t > t_min && t < t_max) {
         return None;
