@@ -5,10 +5,13 @@
 use glam::{DMat3, DVec2, DVec3};
 
 use crate::accel::{Bvh, PADDING};
+
+mod top;
 use crate::geometry::{
     any_candidate, intersect_triangle, intersect_unit_sphere_scaled, Aabb, Motion, Ray, Transform,
     TransformDesc, TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
 };
+use top::TopLevel;
 
 #[derive(Clone, Debug)]
 pub struct Sphere {
@@ -310,6 +313,8 @@ pub struct World {
     objects: Vec<Object>,
     model_triangles: Vec<ModelTriangle>,
     top: Bvh,
+    /// `top`'s nodes in the layout of the top level's own traversal.
+    top_level: TopLevel,
 }
 
 impl World {
@@ -366,6 +371,7 @@ impl World {
         }
         let top = Bvh::build(&bounds);
         let objects = top.order.iter().map(|&o| objects[o as usize]).collect();
+        let top_level = TopLevel::new(&top);
         World {
             spheres,
             triangles,
@@ -376,6 +382,7 @@ impl World {
             objects,
             model_triangles,
             top,
+            top_level,
         }
     }
 
@@ -397,21 +404,35 @@ impl World {
         )
     }
 
-    /// The top-level BVH's traversal, skipped when it holds a single object (whose own test
-    /// is exact, so its box adds nothing).
+    /// Hands `test` every top-level slot the ray may reach before `*t_max` (which `test`
+    /// shrinks), nearest first, or with `ANY` farthest first until `test` returns true. The
+    /// traversal is skipped when the level holds a single object (whose own test is exact, so
+    /// its box adds nothing), and rays outside the f32 box test's range take the generic one.
     #[inline(always)]
-    fn traverse_top<const ORDERED: bool>(
+    fn traverse_top<const ANY: bool>(
         &self,
         ray: &Ray,
         t_max: &mut f64,
-        mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+        mut test: impl FnMut(usize, &mut f64) -> bool,
     ) -> bool {
         if self.objects.len() == 1 {
-            leaf(0..1, t_max)
-        } else if ORDERED {
-            self.top.traverse(ray, t_max, leaf)
-        } else {
+            return test(0, t_max);
+        }
+        let mut leaf = |slots: std::ops::Range<usize>, t_max: &mut f64| {
+            for slot in slots {
+                if test(slot, t_max) {
+                    return true;
+                }
+            }
+            false
+        };
+        if let Some(found) = self.top_level.walk::<ANY>(ray, t_max, &mut leaf) {
+            return found;
+        }
+        if ANY {
             self.top.traverse_any(ray, t_max, leaf)
+        } else {
+            self.top.traverse(ray, t_max, leaf)
         }
     }
 
@@ -422,19 +443,16 @@ impl World {
         let mut world_tri_ray = None;
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
-        self.traverse_top::<true>(ray, &mut t_max, |range, t_max| {
-            for slot in range {
-                if let Some(h) =
-                    self.hit_object::<false>(slot, ray, t_min, *t_max, &mut world_tri_ray)
-                {
-                    *t_max = h.t;
-                    best = Some(Hit {
-                        t: h.t,
-                        object: slot as u32,
-                        prim: h.prim,
-                        bary: h.bary,
-                    });
-                }
+        self.traverse_top::<false>(ray, &mut t_max, |slot, t_max| {
+            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, *t_max, &mut world_tri_ray)
+            {
+                *t_max = h.t;
+                best = Some(Hit {
+                    t: h.t,
+                    object: slot as u32,
+                    prim: h.prim,
+                    bary: h.bary,
+                });
             }
             false
         });
@@ -445,11 +463,9 @@ impl World {
     pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
         let mut world_tri_ray = None;
         let mut t_limit = t_max;
-        self.traverse_top::<false>(ray, &mut t_limit, |mut range, t_max| {
-            range.any(|slot| {
-                self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
-                    .is_some()
-            })
+        self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
+            self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
+                .is_some()
         })
     }
 
@@ -467,10 +483,12 @@ impl World {
     ) -> Option<ObjectHit> {
         match self.objects[slot] {
             Object::Sphere(i) => {
+                // Only the local origin and direction: `ray_to_local`'s inverse direction
+                // (three divisions) is for slab tests, which a sphere does not make.
                 let s = &self.spheres[i as usize];
-                let local = s.transform.ray_to_local(ray);
-                intersect_unit_sphere_scaled(local.origin, local.dir, s.radius, t_min, t_max)
-                    .map(ObjectHit::at)
+                let origin = s.transform.to_local.transform_point3(ray.origin);
+                let dir = s.transform.to_local.transform_vector3(ray.dir);
+                intersect_unit_sphere_scaled(origin, dir, s.radius, t_min, t_max).map(ObjectHit::at)
             }
             Object::TranslatedSphere(i) => {
                 // The affine map multiplies by exact ones and zeros here, so the shifted ray
