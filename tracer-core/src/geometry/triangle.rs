@@ -21,27 +21,42 @@ pub fn intersect_triangle(
     t_min: f64,
     t_max: f64,
 ) -> Option<TriangleHit> {
-    // The corners' coordinates relative to the origin, permuted into the ray's (kx, ky, kz)
-    // frame: the same differences as `v - origin` taken whole, read by position instead of
-    // through `DVec3`'s index match (a three-way branch per read, 7% of a render).
-    // Padded to four and indexed by k & 3, so that no bounds check is needed either
-    // (`TriangleRay::new` makes kx, ky and kz a permutation of 0, 1, 2).
-    let [kx, ky, kz] = [ray.kx & 3, ray.ky & 3, ray.kz & 3];
-    let o = ray.origin.extend(0.0).to_array();
-    let rel = |v: DVec3| {
-        let v = v.extend(0.0).to_array();
-        [v[kx] - o[kx], v[ky] - o[ky], v[kz] - o[kz]]
-    };
-    let [a_x, a_y, a_z] = rel(v0);
-    let [b_x, b_y, b_z] = rel(v1);
-    let [c_x, c_y, c_z] = rel(v2);
+    // One body per axis permutation, each reading its coordinates by constant position: the
+    // permutation is the same for every triangle a ray meets, so the branch predicts, where
+    // reading `v[k]` through `DVec3`'s index match (or a stack array) cost a third of the test.
+    macro_rules! permuted {
+        ($($kx:literal $ky:literal $kz:literal),*) => {
+            match (ray.kx, ray.ky, ray.kz) {
+                $(($kx, $ky, $kz) => {
+                    sheared::<$kx, $ky, $kz>(ray, v0, v1, v2, t_min, t_max)
+                })*
+                _ => unreachable!("TriangleRay::new makes (kx, ky, kz) a permutation"),
+            }
+        };
+    }
+    permuted!(1 2 0, 2 1 0, 2 0 1, 0 2 1, 0 1 2, 1 0 2)
+}
+
+/// [`intersect_triangle`] for the axis permutation (KX, KY, KZ) of `ray`.
+#[inline(always)]
+fn sheared<const KX: usize, const KY: usize, const KZ: usize>(
+    ray: &TriangleRay,
+    v0: DVec3,
+    v1: DVec3,
+    v2: DVec3,
+    t_min: f64,
+    t_max: f64,
+) -> Option<TriangleHit> {
+    let a = (v0 - ray.origin).to_array();
+    let b = (v1 - ray.origin).to_array();
+    let c = (v2 - ray.origin).to_array();
     let s = ray.shear;
-    let ax = a_x - s.x * a_z;
-    let ay = a_y - s.y * a_z;
-    let bx = b_x - s.x * b_z;
-    let by = b_y - s.y * b_z;
-    let cx = c_x - s.x * c_z;
-    let cy = c_y - s.y * c_z;
+    let ax = a[KX] - s.x * a[KZ];
+    let ay = a[KY] - s.y * a[KZ];
+    let bx = b[KX] - s.x * b[KZ];
+    let by = b[KY] - s.y * b[KZ];
+    let cx = c[KX] - s.x * c[KZ];
+    let cy = c[KY] - s.y * c[KZ];
     let u = cx * by - cy * bx;
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
@@ -52,7 +67,7 @@ pub fn intersect_triangle(
     if det == 0.0 || !det.is_finite() {
         return None;
     }
-    let t_scaled = u * (s.z * a_z) + v * (s.z * b_z) + w * (s.z * c_z);
+    let t_scaled = u * (s.z * a[KZ]) + v * (s.z * b[KZ]) + w * (s.z * c[KZ]);
     let t = t_scaled / det;
     if !(t > t_min && t < t_max) {
         return None;
