@@ -73,7 +73,9 @@ pub fn uniform_sphere(u1: f64, u2: f64) -> glam::DVec3 {
 /// about an ulp. The results differ from `cos`/`sin` of 2πu by rounding only.
 #[inline]
 pub fn turn(u: f64) -> (f64, f64) {
-    // Coefficients of fdlibm's __kernel_sin and __kernel_cos on [-π/4, π/4].
+    // Coefficients of fdlibm's __kernel_sin and __kernel_cos on [-π/4, π/4], digits as
+    // published (more than f64 holds; they round to fdlibm's bit patterns).
+    #[allow(clippy::excessive_precision)]
     const S: [f64; 6] = [
         -1.666_666_666_666_663_243_48e-1,
         8.333_333_333_322_489_461_24e-3,
@@ -82,6 +84,7 @@ pub fn turn(u: f64) -> (f64, f64) {
         -2.505_076_025_340_686_341_95e-8,
         1.589_690_995_211_550_102_21e-10,
     ];
+    #[allow(clippy::excessive_precision)]
     const C: [f64; 6] = [
         4.166_666_666_666_660_190_37e-2,
         -1.388_888_888_887_410_957_49e-3,
