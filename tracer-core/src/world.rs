@@ -459,6 +459,43 @@ impl World {
         best
     }
 
+    /// The top-level slots a bundle of rays from `origin` between the planes through it with
+    /// inward normals `planes` may hit (see [`crate::camera::EyeRays::pixel_frustum`]), into
+    /// `slots`, for [`World::intersect_among`].
+    pub fn frustum_slots(&self, origin: DVec3, planes: &[DVec3; 4], slots: &mut Vec<u32>) {
+        slots.clear();
+        if self.objects.len() == 1 {
+            slots.push(0);
+            return;
+        }
+        self.top_level.frustum(origin, planes, &mut |range| {
+            slots.extend(range.map(|s| s as u32))
+        });
+    }
+
+    /// [`World::intersect`] for a ray that can hit nothing outside the top-level `slots`
+    /// (a pixel's eye ray, with its pixel's [`World::frustum_slots`]): those slots are tested
+    /// without a traversal. The nearest hit is the same; only exact ties in t between two
+    /// objects may resolve to the other one.
+    pub fn intersect_among(&self, ray: &Ray, t_min: f64, t_max: f64, slots: &[u32]) -> Option<Hit> {
+        let mut world_tri_ray = None;
+        let mut best: Option<Hit> = None;
+        let mut t_max = t_max;
+        for &slot in slots {
+            let slot = slot as usize;
+            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, t_max, &mut world_tri_ray) {
+                t_max = h.t;
+                best = Some(Hit {
+                    t: h.t,
+                    object: slot as u32,
+                    prim: h.prim,
+                    bary: h.bary,
+                });
+            }
+        }
+        best
+    }
+
     /// Whether anything lies along the ray with t in (0, t_max).
     pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
         let mut world_tri_ray = None;
@@ -804,6 +841,88 @@ mod tests {
         }
         // And the box is not absurdly loose: within a unit of the path's extent.
         assert!(bounds.extent().max_element() < 10.0, "{bounds:?}");
+    }
+
+    #[test]
+    fn a_pixels_frustum_slots_give_its_eye_rays_the_same_hits() {
+        use crate::camera::Camera;
+        let mut state = 5u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        // Spheres and triangles scattered in front of a camera at the origin looking down −z.
+        let spheres = (0..40)
+            .map(|i| Sphere {
+                transform: Transform::new(
+                    DVec3::new(next() * 8.0 - 4.0, next() * 6.0 - 3.0, -4.0 - next() * 10.0),
+                    glam::DQuat::IDENTITY,
+                    DVec3::ONE,
+                ),
+                radius: 0.1 + next() * 0.6,
+                material: i,
+            })
+            .collect();
+        let triangles = (0..40)
+            .map(|_| {
+                let c = DVec3::new(next() * 8.0 - 4.0, next() * 6.0 - 3.0, -4.0 - next() * 10.0);
+                let corner = |c: DVec3, next: &mut dyn FnMut() -> f64| {
+                    c + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5)
+                };
+                WorldTriangle {
+                    positions: [
+                        corner(c, &mut next),
+                        corner(c, &mut next),
+                        corner(c, &mut next),
+                    ],
+                    normals: [DVec3::Z; 3],
+                    tex_coords: [DVec2::ZERO; 3],
+                    materials: [0; 3],
+                }
+            })
+            .collect();
+        let world = World::with_movers(spheres, triangles, vec![], vec![], vec![], (0.0, 0.0));
+        let (w, h) = (64u32, 48u32);
+        let camera = Camera::from_orientation(
+            DVec3::ZERO,
+            glam::DQuat::IDENTITY,
+            0.9,
+            0.01,
+            100.0,
+            4.0 / 3.0,
+        );
+        let mut slots = Vec::new();
+        let (mut hits, mut culled) = (0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
+                let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
+                world.frustum_slots(camera.position, &planes, &mut slots);
+                culled += world.objects.len() - slots.len();
+                // The pixel's corners and edges, and random points inside it.
+                for k in 0..12 {
+                    let (jx, jy) = match k {
+                        0 => (0.0, 0.0),
+                        1 => (1.0, 1.0),
+                        2 => (0.0, 1.0),
+                        3 => (1.0, 0.0),
+                        _ => (next(), next()),
+                    };
+                    let ray = camera.ray(x as f64 + jx, y as f64 + jy, w as f64, h as f64);
+                    let full = world.intersect(&ray, 0.01, 100.0).map(|h| (h.t, h.object));
+                    let among = world
+                        .intersect_among(&ray, 0.01, 100.0, &slots)
+                        .map(|h| (h.t, h.object));
+                    assert_eq!(full, among, "pixel ({x}, {y}), sample {k}");
+                    hits += full.is_some() as u32;
+                }
+            }
+        }
+        assert!(hits > 1000, "{hits} hits");
+        // The candidates are few: most objects lie outside a pixel's frustum.
+        assert!(culled > (w * h) as usize * 60, "{culled} culled");
     }
 
     #[test]

@@ -143,6 +143,54 @@ impl TopLevel {
     }
 }
 
+impl TopLevel {
+    /// Hands `leaf` the slots of every leaf whose box is not wholly outside one of the planes
+    /// through `origin` with inward normals `planes` (a pixel's bundle of eye rays): a
+    /// superset of the leaves any of those rays can reach.
+    pub(super) fn frustum(
+        &self,
+        origin: glam::DVec3,
+        planes: &[glam::DVec3; 4],
+        leaf: &mut impl FnMut(std::ops::Range<usize>),
+    ) {
+        if !self.nodes.is_empty() {
+            self.frustum_from(0, origin, planes, leaf);
+        }
+    }
+
+    fn frustum_from(
+        &self,
+        index: usize,
+        origin: glam::DVec3,
+        planes: &[glam::DVec3; 4],
+        leaf: &mut impl FnMut(std::ops::Range<usize>),
+    ) {
+        let node = &self.nodes[index];
+        for c in 0..WIDTH {
+            if node.index[c] == u32::MAX {
+                continue;
+            }
+            let b = &node.bounds;
+            let min = glam::DVec3::new(b[0][c] as f64, b[2][c] as f64, b[4][c] as f64) - origin;
+            let max = glam::DVec3::new(b[1][c] as f64, b[3][c] as f64, b[5][c] as f64) - origin;
+            // Outside a plane when even the box corner farthest along its normal is behind it.
+            let outside = planes.iter().any(|n| {
+                let far = glam::DVec3::select(n.cmpge(glam::DVec3::ZERO), max, min);
+                n.dot(far) < 0.0
+            });
+            if outside {
+                continue;
+            }
+            let first = node.index[c] as usize;
+            if node.count[c] > 0 {
+                leaf(first..first + node.count[c] as usize);
+            } else {
+                self.frustum_from(first, origin, planes, leaf);
+            }
+        }
+    }
+}
+
 /// Whether a child at entry distance `a` is visited after one at `b`: nearest first for
 /// closest hits, farthest first for any-hit queries (a shadow ray's blockers tend to lie
 /// away from the surface it leaves).
