@@ -84,6 +84,35 @@ impl Camera {
         Ray::new(self.position, dir.normalize())
     }
 
+    /// Inward normals of the four planes through the camera position that bound every
+    /// pinhole eye ray through the image rectangle [x0, x1] × [y0, y1] (pixels from the
+    /// bottom-left corner): a point p lies between them when n·(p − position) ≥ 0 for each.
+    pub fn frustum(
+        &self,
+        x0: f64,
+        y0: f64,
+        x1: f64,
+        y1: f64,
+        width: f64,
+        height: f64,
+    ) -> [DVec3; 4] {
+        let dir = |x: f64, y: f64| {
+            let i = 2.0 * x / width - 1.0;
+            let j = 2.0 * y / height - 1.0;
+            self.forward + self.tan_half_fov * (j * self.up + self.aspect * i * self.right)
+        };
+        let corners = [dir(x0, y0), dir(x1, y0), dir(x1, y1), dir(x0, y1)];
+        let centre = dir(0.5 * (x0 + x1), 0.5 * (y0 + y1));
+        std::array::from_fn(|k| {
+            let n = corners[k].cross(corners[(k + 1) % 4]);
+            if n.dot(centre) < 0.0 {
+                -n
+            } else {
+                n
+            }
+        })
+    }
+
     /// The thin-lens eye ray through image point (x, y) from lens point `lens` (a point of
     /// the unit disk): it leaves the aperture there and passes through the point of the focal
     /// plane that the pinhole ray meets, so only that plane stays sharp.
@@ -165,6 +194,28 @@ impl<'a> EyeRays<'a> {
     /// The camera at the shutter's opening (overridden where the settings say so).
     pub fn camera(&self) -> &Camera {
         &self.camera
+    }
+
+    /// Where every eye ray of pixel (x, y) starts, and the inward normals of four planes
+    /// through that point that enclose them all (see [`Camera::frustum`]); None where the
+    /// pixel's rays do not share an origin (a thin lens, a moving camera). The pixel is
+    /// widened by a twentieth of a pixel each way, far beyond the rounding of the rays'
+    /// directions, so that no ray strays outside.
+    pub fn pixel_frustum(&self, x: u32, y: u32) -> Option<(DVec3, [DVec3; 4])> {
+        if self.camera_moves || self.camera.aperture > 0.0 {
+            return None;
+        }
+        const MARGIN: f64 = 0.05;
+        let (x, y) = (x as f64, y as f64);
+        let planes = self.camera.frustum(
+            x - MARGIN,
+            y - MARGIN,
+            x + 1.0 + MARGIN,
+            y + 1.0 + MARGIN,
+            self.width as f64,
+            self.height as f64,
+        );
+        Some((self.camera.position, planes))
     }
 
     /// Sample `sample` of pixel (x, y), y counted from the image's **bottom** row.

@@ -132,13 +132,27 @@ impl<'a> Renderer<'a> {
         // The course's pixel grid has y = 0 at the bottom.
         let y = self.settings.height - 1 - row;
         let (mut radiance_rays, mut shadow_rays) = (0u64, 0u64);
+        // A pixel's eye rays share an origin and stay within its frustum: the top-level slots
+        // the frustum meets are found once per pixel, and each eye ray tests just those
+        // instead of traversing (kept for the row, so no allocation per pixel).
+        let mut slots = Vec::new();
         for (i, px) in out.chunks_exact_mut(3).enumerate() {
             let x = x0 + i as u32;
             let mut sum = DVec3::ZERO;
+            let frustum = self.eye.pixel_frustum(x, y).map(|(origin, planes)| {
+                stage.world.frustum_slots(origin, &planes, &mut slots);
+                &slots[..]
+            });
             for sample in 0..self.settings.spp {
                 let mut eye = self.eye.sample(x, y, sample);
-                let (color, counts) =
-                    tracer.sample(&eye.ray, eye.near, eye.far, &mut eye.rng, eye.gloss);
+                let (color, counts) = tracer.sample(
+                    &eye.ray,
+                    eye.near,
+                    eye.far,
+                    &mut eye.rng,
+                    eye.gloss,
+                    frustum,
+                );
                 radiance_rays += counts.radiance as u64;
                 shadow_rays += counts.shadow as u64;
                 sum += sanitize(color);

@@ -5,10 +5,13 @@
 use glam::{DMat3, DVec2, DVec3};
 
 use crate::accel::{Bvh, PADDING};
+
+mod top;
 use crate::geometry::{
     any_candidate, intersect_triangle, intersect_unit_sphere_scaled, Aabb, Motion, Ray, Transform,
     TransformDesc, TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
 };
+use top::TopLevel;
 
 #[derive(Clone, Debug)]
 pub struct Sphere {
@@ -310,6 +313,8 @@ pub struct World {
     objects: Vec<Object>,
     model_triangles: Vec<ModelTriangle>,
     top: Bvh,
+    /// `top`'s nodes in the layout of the top level's own traversal.
+    top_level: TopLevel,
 }
 
 impl World {
@@ -366,6 +371,7 @@ impl World {
         }
         let top = Bvh::build(&bounds);
         let objects = top.order.iter().map(|&o| objects[o as usize]).collect();
+        let top_level = TopLevel::new(&top);
         World {
             spheres,
             triangles,
@@ -376,6 +382,7 @@ impl World {
             objects,
             model_triangles,
             top,
+            top_level,
         }
     }
 
@@ -397,21 +404,35 @@ impl World {
         )
     }
 
-    /// The top-level BVH's traversal, skipped when it holds a single object (whose own test
-    /// is exact, so its box adds nothing).
+    /// Hands `test` every top-level slot the ray may reach before `*t_max` (which `test`
+    /// shrinks), nearest first, or with `ANY` farthest first until `test` returns true. The
+    /// traversal is skipped when the level holds a single object (whose own test is exact, so
+    /// its box adds nothing), and rays outside the f32 box test's range take the generic one.
     #[inline(always)]
-    fn traverse_top<const ORDERED: bool>(
+    fn traverse_top<const ANY: bool>(
         &self,
         ray: &Ray,
         t_max: &mut f64,
-        mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+        mut test: impl FnMut(usize, &mut f64) -> bool,
     ) -> bool {
         if self.objects.len() == 1 {
-            leaf(0..1, t_max)
-        } else if ORDERED {
-            self.top.traverse(ray, t_max, leaf)
-        } else {
+            return test(0, t_max);
+        }
+        let mut leaf = |slots: std::ops::Range<usize>, t_max: &mut f64| {
+            for slot in slots {
+                if test(slot, t_max) {
+                    return true;
+                }
+            }
+            false
+        };
+        if let Some(found) = self.top_level.walk::<ANY>(ray, t_max, &mut leaf) {
+            return found;
+        }
+        if ANY {
             self.top.traverse_any(ray, t_max, leaf)
+        } else {
+            self.top.traverse(ray, t_max, leaf)
         }
     }
 
@@ -422,22 +443,54 @@ impl World {
         let mut world_tri_ray = None;
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
-        self.traverse_top::<true>(ray, &mut t_max, |range, t_max| {
-            for slot in range {
-                if let Some(h) =
-                    self.hit_object::<false>(slot, ray, t_min, *t_max, &mut world_tri_ray)
-                {
-                    *t_max = h.t;
-                    best = Some(Hit {
-                        t: h.t,
-                        object: slot as u32,
-                        prim: h.prim,
-                        bary: h.bary,
-                    });
-                }
+        self.traverse_top::<false>(ray, &mut t_max, |slot, t_max| {
+            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, *t_max, &mut world_tri_ray)
+            {
+                *t_max = h.t;
+                best = Some(Hit {
+                    t: h.t,
+                    object: slot as u32,
+                    prim: h.prim,
+                    bary: h.bary,
+                });
             }
             false
         });
+        best
+    }
+
+    /// The top-level slots a bundle of rays from `origin` between the planes through it with
+    /// inward normals `planes` may hit (see [`crate::camera::EyeRays::pixel_frustum`]), into
+    /// `slots`, for [`World::intersect_among`].
+    pub fn frustum_slots(&self, origin: DVec3, planes: &[DVec3; 4], slots: &mut Vec<u32>) {
+        slots.clear();
+        // A single object too: pixels whose frustum misses its box (most of dragon.scene's)
+        // then test nothing at all.
+        self.top_level.frustum(origin, planes, &mut |range| {
+            slots.extend(range.map(|s| s as u32))
+        });
+    }
+
+    /// [`World::intersect`] for a ray that can hit nothing outside the top-level `slots`
+    /// (a pixel's eye ray, with its pixel's [`World::frustum_slots`]): those slots are tested
+    /// without a traversal. The nearest hit is the same; only exact ties in t between two
+    /// objects may resolve to the other one.
+    pub fn intersect_among(&self, ray: &Ray, t_min: f64, t_max: f64, slots: &[u32]) -> Option<Hit> {
+        let mut world_tri_ray = None;
+        let mut best: Option<Hit> = None;
+        let mut t_max = t_max;
+        for &slot in slots {
+            let slot = slot as usize;
+            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, t_max, &mut world_tri_ray) {
+                t_max = h.t;
+                best = Some(Hit {
+                    t: h.t,
+                    object: slot as u32,
+                    prim: h.prim,
+                    bary: h.bary,
+                });
+            }
+        }
         best
     }
 
@@ -445,11 +498,9 @@ impl World {
     pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
         let mut world_tri_ray = None;
         let mut t_limit = t_max;
-        self.traverse_top::<false>(ray, &mut t_limit, |mut range, t_max| {
-            range.any(|slot| {
-                self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
-                    .is_some()
-            })
+        self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
+            self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
+                .is_some()
         })
     }
 
@@ -467,10 +518,12 @@ impl World {
     ) -> Option<ObjectHit> {
         match self.objects[slot] {
             Object::Sphere(i) => {
+                // Only the local origin and direction: `ray_to_local`'s inverse direction
+                // (three divisions) is for slab tests, which a sphere does not make.
                 let s = &self.spheres[i as usize];
-                let local = s.transform.ray_to_local(ray);
-                intersect_unit_sphere_scaled(local.origin, local.dir, s.radius, t_min, t_max)
-                    .map(ObjectHit::at)
+                let origin = s.transform.to_local.transform_point3(ray.origin);
+                let dir = s.transform.to_local.transform_vector3(ray.dir);
+                intersect_unit_sphere_scaled(origin, dir, s.radius, t_min, t_max).map(ObjectHit::at)
             }
             Object::TranslatedSphere(i) => {
                 // The affine map multiplies by exact ones and zeros here, so the shifted ray
@@ -786,6 +839,88 @@ mod tests {
         }
         // And the box is not absurdly loose: within a unit of the path's extent.
         assert!(bounds.extent().max_element() < 10.0, "{bounds:?}");
+    }
+
+    #[test]
+    fn a_pixels_frustum_slots_give_its_eye_rays_the_same_hits() {
+        use crate::camera::Camera;
+        let mut state = 5u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        // Spheres and triangles scattered in front of a camera at the origin looking down −z.
+        let spheres = (0..40)
+            .map(|i| Sphere {
+                transform: Transform::new(
+                    DVec3::new(next() * 8.0 - 4.0, next() * 6.0 - 3.0, -4.0 - next() * 10.0),
+                    glam::DQuat::IDENTITY,
+                    DVec3::ONE,
+                ),
+                radius: 0.1 + next() * 0.6,
+                material: i,
+            })
+            .collect();
+        let triangles = (0..40)
+            .map(|_| {
+                let c = DVec3::new(next() * 8.0 - 4.0, next() * 6.0 - 3.0, -4.0 - next() * 10.0);
+                let corner = |c: DVec3, next: &mut dyn FnMut() -> f64| {
+                    c + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5)
+                };
+                WorldTriangle {
+                    positions: [
+                        corner(c, &mut next),
+                        corner(c, &mut next),
+                        corner(c, &mut next),
+                    ],
+                    normals: [DVec3::Z; 3],
+                    tex_coords: [DVec2::ZERO; 3],
+                    materials: [0; 3],
+                }
+            })
+            .collect();
+        let world = World::with_movers(spheres, triangles, vec![], vec![], vec![], (0.0, 0.0));
+        let (w, h) = (64u32, 48u32);
+        let camera = Camera::from_orientation(
+            DVec3::ZERO,
+            glam::DQuat::IDENTITY,
+            0.9,
+            0.01,
+            100.0,
+            4.0 / 3.0,
+        );
+        let mut slots = Vec::new();
+        let (mut hits, mut culled) = (0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
+                let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
+                world.frustum_slots(camera.position, &planes, &mut slots);
+                culled += world.objects.len() - slots.len();
+                // The pixel's corners and edges, and random points inside it.
+                for k in 0..12 {
+                    let (jx, jy) = match k {
+                        0 => (0.0, 0.0),
+                        1 => (1.0, 1.0),
+                        2 => (0.0, 1.0),
+                        3 => (1.0, 0.0),
+                        _ => (next(), next()),
+                    };
+                    let ray = camera.ray(x as f64 + jx, y as f64 + jy, w as f64, h as f64);
+                    let full = world.intersect(&ray, 0.01, 100.0).map(|h| (h.t, h.object));
+                    let among = world
+                        .intersect_among(&ray, 0.01, 100.0, &slots)
+                        .map(|h| (h.t, h.object));
+                    assert_eq!(full, among, "pixel ({x}, {y}), sample {k}");
+                    hits += full.is_some() as u32;
+                }
+            }
+        }
+        assert!(hits > 1000, "{hits} hits");
+        // The candidates are few: most objects lie outside a pixel's frustum.
+        assert!(culled > (w * h) as usize * 60, "{culled} culled");
     }
 
     #[test]

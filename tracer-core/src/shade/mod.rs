@@ -101,6 +101,9 @@ impl<'a> Tracer<'a> {
     /// The colour one pixel sample sees along the eye ray `ray` (unit direction), hits
     /// accepted for t in [near, far], with the rays it traced. `rng` is the sample's main
     /// stream; `gloss` its glossy-lobe stream, needed only where a material is glossy.
+    ///
+    /// `slots`, when given, holds every top-level slot the eye ray can hit (its pixel's
+    /// [`World::frustum_slots`]): the eye ray then tests those without a traversal.
     pub fn sample(
         &mut self,
         ray: &Ray,
@@ -108,13 +111,14 @@ impl<'a> Tracer<'a> {
         far: f64,
         rng: &mut Rng,
         gloss: Option<Rng>,
+        slots: Option<&[u32]>,
     ) -> (DVec3, RayCounts) {
         if let Some(gloss) = gloss {
             self.gloss_rng = gloss;
         }
         self.counts = RayCounts::default();
         let outer = std::rc::Rc::clone(&self.outer);
-        let color = self.radiance(ray, near, far, 0, &outer, rng);
+        let color = self.radiance(ray, near, far, 0, &outer, rng, slots);
         (color, self.counts)
     }
 
@@ -128,9 +132,10 @@ impl<'a> Tracer<'a> {
         level: u32,
         media: &MediumStack,
         rng: &mut Rng,
+        slots: Option<&[u32]>,
     ) -> DVec3 {
         let absorption = media.absorption();
-        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng);
+        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng, slots);
         if absorption == DVec3::ZERO {
             return color;
         }
@@ -149,12 +154,18 @@ impl<'a> Tracer<'a> {
         level: u32,
         media: &MediumStack,
         rng: &mut Rng,
+        slots: Option<&[u32]>,
     ) -> (DVec3, f64) {
         if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
             return (DVec3::ZERO, 0.0);
         }
         self.counts.radiance += 1;
-        let Some(hit) = self.stage.world.intersect(ray, t_min, t_max) else {
+        let world = self.stage.world;
+        let hit = match slots {
+            Some(slots) => world.intersect_among(ray, t_min, t_max, slots),
+            None => world.intersect(ray, t_min, t_max),
+        };
+        let Some(hit) = hit else {
             return (self.stage.background(ray.dir), f64::INFINITY);
         };
         (self.shade(ray, &hit, level, media, rng), hit.t)
@@ -191,8 +202,8 @@ impl<'a> Tracer<'a> {
                 let dir = glossy(reflect(d, n), n, s.glossiness, &mut self.gloss_rng);
                 let reflected =
                     spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
-                color +=
-                    tint * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng);
+                color += tint
+                    * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, None);
             }
             return color;
         }
@@ -211,7 +222,7 @@ impl<'a> Tracer<'a> {
             let reflected = spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
             color += reflectance
                 * tint
-                * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng);
+                * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, None);
         }
         if reflectance < 1.0 {
             if let Some(dir) = crossing.refracted(d) {
@@ -225,6 +236,7 @@ impl<'a> Tracer<'a> {
                         level + 1,
                         &crossing.beyond,
                         rng,
+                        None,
                     );
             }
         }

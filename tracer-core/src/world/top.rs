@@ -1,0 +1,411 @@
+//! The top level's own traversal over the nodes of the objects' BVH.
+//!
+//! The accel module's generic traversal serves meshes of any size; the top level of a course
+//! scene holds a few dozen objects, and there the per-ray and per-node overheads decided the
+//! cost (a third of a stacks.scene render was traversal bookkeeping: working out which
+//! children are leaves, bounds checks, the branchy f32 ray set-up). This copy of the nodes
+//! keeps each node's leaf mask, sets up a ray without branches and walks the same f32 slab test,
+//! so exactly the boxes the generic test enters are entered (it is conservative: a box the
+//! f64 test would enter is never culled), and leaves are handed to the caller slot by slot.
+
+use std::mem::MaybeUninit;
+
+use crate::accel::{Bvh, Node};
+use crate::geometry::Ray;
+
+/// Children per top-level node.
+const WIDTH: usize = 8;
+/// Deepest binary tree the builder makes (accel's `MAX_DEPTH`); a wide node is never deeper,
+/// and each level pushes at most `WIDTH - 1` siblings.
+const MAX_DEPTH: usize = 96;
+const STACK_DEPTH: usize = (WIDTH - 1) * MAX_DEPTH;
+
+/// Outward margins of the f32 slab test, as in the accel module: each slab distance is off by
+/// at most a few f32 rounding units, 2^-20 is sixteen; the absolute term covers subnormals.
+const SLAB_DOWN: f32 = 1.0 - 1.0 / (1u32 << 20) as f32;
+const SLAB_UP: f32 = 1.0 + 1.0 / (1u32 << 20) as f32;
+const SLAB_ABS: f32 = 1e-37;
+/// Rays whose origin or inverse direction fall outside this range take the generic traversal.
+const F32_SAFE: f64 = 1e30;
+
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct TopNode {
+    /// `bounds[2 * axis]`: the children's minima on `axis`; `bounds[2 * axis + 1]` maxima.
+    /// Unused slots hold an empty box (min +∞, max −∞).
+    bounds: [[f32; WIDTH]; 6],
+    /// Per child: the child node's index, or a leaf's first slot.
+    index: [u32; WIDTH],
+    /// Per child: a leaf's slot count (0 for an interior child or an unused slot).
+    count: [u32; WIDTH],
+    /// The children that are leaves, one bit each.
+    leaves: u32,
+}
+
+/// The top-level BVH's nodes in the traversal's own layout.
+#[derive(Clone, Debug, Default)]
+pub(super) struct TopLevel {
+    nodes: Vec<TopNode>,
+}
+
+impl TopLevel {
+    pub(super) fn new(bvh: &Bvh) -> TopLevel {
+        assert!(
+            bvh.depth() <= MAX_DEPTH,
+            "BVH deeper than the builder's limit"
+        );
+        let nodes = bvh.nodes.iter().map(TopNode::from_node).collect();
+        TopLevel { nodes }
+    }
+
+    /// Hands `leaf` the slots of every leaf the ray may reach before `*t_max` (which `leaf`
+    /// shrinks as it finds closer hits): nearest child first, or farthest first with `ANY`,
+    /// as the generic traversal orders them. Returns true as soon as `leaf` does. None when
+    /// the ray is out of the f32 test's range (the caller then takes the generic traversal).
+    #[inline(always)]
+    pub(super) fn walk<const ANY: bool>(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+    ) -> Option<bool> {
+        let r = SlabRay::new(ray)?;
+        if self.nodes.is_empty() {
+            return Some(false);
+        }
+        // Left uninitialised: only slots below `top`, each written first, are read.
+        let mut stack = [const { MaybeUninit::<(u32, f32)>::uninit() }; STACK_DEPTH];
+        let mut top = 0;
+        let mut index = 0usize;
+        loop {
+            let node = &self.nodes[index];
+            let (mask, dist) = r.hit(node, *t_max);
+            let mut leaves = mask & node.leaves;
+            let mut inner = mask & !leaves;
+            while leaves != 0 {
+                let c = leaves.trailing_zeros() as usize % WIDTH;
+                leaves &= leaves - 1;
+                if dist[c] as f64 <= *t_max {
+                    let first = node.index[c] as usize;
+                    if leaf(first..first + node.count[c] as usize, t_max) {
+                        return Some(true);
+                    }
+                }
+            }
+            if inner != 0 {
+                let c = inner.trailing_zeros() as usize % WIDTH;
+                inner &= inner - 1;
+                let mut next = (node.index[c], dist[c]);
+                if inner != 0 {
+                    // Two or more interior children: visit the first in order now and push
+                    // the rest so that they pop in order.
+                    let mut rest = [(0u32, 0f32); WIDTH - 1];
+                    let mut n = 0;
+                    while inner != 0 {
+                        let c = inner.trailing_zeros() as usize % WIDTH;
+                        inner &= inner - 1;
+                        let mut child = (node.index[c], dist[c]);
+                        if later::<ANY>(next.1, child.1) {
+                            std::mem::swap(&mut child, &mut next);
+                        }
+                        let mut i = n;
+                        while i > 0 && later::<ANY>(child.1, rest[i - 1].1) {
+                            rest[i] = rest[i - 1];
+                            i -= 1;
+                        }
+                        rest[i] = child;
+                        n += 1;
+                    }
+                    for &p in &rest[..n] {
+                        stack[top].write(p);
+                        top += 1;
+                    }
+                }
+                if next.1 as f64 <= *t_max {
+                    index = next.0 as usize;
+                    continue;
+                }
+            }
+            // Skip subtrees that a hit found since they were pushed has put out of reach.
+            loop {
+                if top == 0 {
+                    return Some(false);
+                }
+                top -= 1;
+                // SAFETY: slot `top` was written by the push that raised `top` above it.
+                let (n, entry) = unsafe { stack[top].assume_init() };
+                if entry as f64 <= *t_max {
+                    index = n as usize;
+                    break;
+                }
+            }
+        }
+    }
+}
+
+impl TopLevel {
+    /// Hands `leaf` the slots of every leaf whose box is not wholly outside one of the planes
+    /// through `origin` with inward normals `planes` (a pixel's bundle of eye rays): a
+    /// superset of the leaves any of those rays can reach.
+    pub(super) fn frustum(
+        &self,
+        origin: glam::DVec3,
+        planes: &[glam::DVec3; 4],
+        leaf: &mut impl FnMut(std::ops::Range<usize>),
+    ) {
+        if !self.nodes.is_empty() {
+            self.frustum_from(0, origin, planes, leaf);
+        }
+    }
+
+    fn frustum_from(
+        &self,
+        index: usize,
+        origin: glam::DVec3,
+        planes: &[glam::DVec3; 4],
+        leaf: &mut impl FnMut(std::ops::Range<usize>),
+    ) {
+        let node = &self.nodes[index];
+        for c in 0..WIDTH {
+            if node.index[c] == u32::MAX {
+                continue;
+            }
+            let b = &node.bounds;
+            let min = glam::DVec3::new(b[0][c] as f64, b[2][c] as f64, b[4][c] as f64) - origin;
+            let max = glam::DVec3::new(b[1][c] as f64, b[3][c] as f64, b[5][c] as f64) - origin;
+            // Outside a plane when even the box corner farthest along its normal is behind it.
+            let outside = planes.iter().any(|n| {
+                let far = glam::DVec3::select(n.cmpge(glam::DVec3::ZERO), max, min);
+                n.dot(far) < 0.0
+            });
+            if outside {
+                continue;
+            }
+            let first = node.index[c] as usize;
+            if node.count[c] > 0 {
+                leaf(first..first + node.count[c] as usize);
+            } else {
+                self.frustum_from(first, origin, planes, leaf);
+            }
+        }
+    }
+}
+
+/// Whether a child at entry distance `a` is visited after one at `b`: nearest first for
+/// closest hits, farthest first for any-hit queries (a shadow ray's blockers tend to lie
+/// away from the surface it leaves).
+#[inline(always)]
+fn later<const ANY: bool>(a: f32, b: f32) -> bool {
+    if ANY {
+        a < b
+    } else {
+        a > b
+    }
+}
+
+impl TopNode {
+    fn from_node(node: &Node) -> TopNode {
+        let width = node.index.len();
+        assert!(width <= WIDTH, "accel nodes wider than the top level's");
+        let mut out = TopNode {
+            bounds: [
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+            ],
+            index: [u32::MAX; WIDTH],
+            count: [0; WIDTH],
+            leaves: 0,
+        };
+        for c in 0..width {
+            for row in 0..6 {
+                out.bounds[row][c] = node.bounds[row][c];
+            }
+            out.index[c] = node.index[c];
+            out.count[c] = node.count[c];
+            if node.count[c] > 0 {
+                out.leaves |= 1 << c;
+            }
+        }
+        out
+    }
+}
+
+/// Per-ray constants of the f32 slab test: per axis, the rows of the node's bounds holding
+/// the near and far planes (chosen by the direction's sign), the origin rounded outward for
+/// each (so that rounding never culls a true hit) and the inverse direction.
+struct SlabRay {
+    near: [usize; 3],
+    far: [usize; 3],
+    o_near: [f32; 3],
+    o_far: [f32; 3],
+    inv: [f32; 3],
+}
+
+impl SlabRay {
+    #[inline(always)]
+    fn new(ray: &Ray) -> Option<SlabRay> {
+        let o = ray.origin.to_array();
+        let inv = ray.inv_dir.to_array();
+        let mut r = SlabRay {
+            near: [0; 3],
+            far: [0; 3],
+            o_near: [0.0; 3],
+            o_far: [0.0; 3],
+            inv: [0.0; 3],
+        };
+        let mut ok = true;
+        for a in 0..3 {
+            let (o, inv) = (o[a], inv[a]);
+            ok &= o.abs() < F32_SAFE && inv.abs() < F32_SAFE && inv.abs() > 1.0 / F32_SAFE;
+            // Moved outward by 2^-22 of itself before rounding to nearest (at most 2^-24 of
+            // itself), and by 1e-37 for f32's subnormal spacing: `lo` ≤ o ≤ `hi`, without
+            // the branches of an exact directed rounding (the box is a few ulps looser).
+            let margin = o.abs() * (1.0 / (1u64 << 22) as f64) + 1e-37;
+            let lo = (o - margin) as f32;
+            let hi = (o + margin) as f32;
+            let negative = inv < 0.0;
+            r.near[a] = 2 * a + negative as usize;
+            r.far[a] = 2 * a + 1 - negative as usize;
+            // Near plane: the larger origin makes its distance smaller; far: the smaller.
+            r.o_near[a] = if negative { lo } else { hi };
+            r.o_far[a] = if negative { hi } else { lo };
+            r.inv[a] = inv as f32;
+        }
+        ok.then_some(r)
+    }
+
+    /// Hit mask and conservative entry distances of a node's boxes, four at a time.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn hit(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
+        use std::arch::x86_64::*;
+        let mut mask = 0;
+        let mut dist = [0f32; WIDTH];
+        let b = &node.bounds;
+        let row = |i: usize| &b[i % 6];
+        // SAFETY: SSE is part of the x86_64 baseline; the loads read four f32s of a row of
+        // eight at offset 0 or 4, and the store writes four of `dist`'s eight there.
+        unsafe {
+            let t_far = _mm_set1_ps(t_max as f32);
+            for half in [0, 4] {
+                let plane = |r: &[f32; WIDTH], o: f32, inv: f32| {
+                    _mm_mul_ps(
+                        _mm_sub_ps(_mm_loadu_ps(r.as_ptr().add(half)), _mm_set1_ps(o)),
+                        _mm_set1_ps(inv),
+                    )
+                };
+                let nx = plane(row(self.near[0]), self.o_near[0], self.inv[0]);
+                let ny = plane(row(self.near[1]), self.o_near[1], self.inv[1]);
+                let nz = plane(row(self.near[2]), self.o_near[2], self.inv[2]);
+                let fx = plane(row(self.far[0]), self.o_far[0], self.inv[0]);
+                let fy = plane(row(self.far[1]), self.o_far[1], self.inv[1]);
+                let fz = plane(row(self.far[2]), self.o_far[2], self.inv[2]);
+                let near = _mm_max_ps(_mm_max_ps(nx, ny), _mm_max_ps(nz, _mm_setzero_ps()));
+                let far = _mm_min_ps(_mm_min_ps(fx, fy), _mm_min_ps(fz, t_far));
+                let near = _mm_mul_ps(near, _mm_set1_ps(SLAB_DOWN));
+                let far = _mm_add_ps(_mm_mul_ps(far, _mm_set1_ps(SLAB_UP)), _mm_set1_ps(SLAB_ABS));
+                mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << half;
+                _mm_storeu_ps(dist.as_mut_ptr().add(half), near);
+            }
+        }
+        (mask, dist)
+    }
+
+    #[cfg(not(target_arch = "x86_64"))]
+    #[inline(always)]
+    fn hit(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
+        let b = &node.bounds;
+        let t_max = t_max as f32;
+        let mut mask = 0;
+        let mut dist = [0f32; WIDTH];
+        for c in 0..WIDTH {
+            let mut near = 0f32;
+            let mut far = t_max;
+            for a in 0..3 {
+                let tn = (b[self.near[a] % 6][c] - self.o_near[a]) * self.inv[a];
+                let tf = (b[self.far[a] % 6][c] - self.o_far[a]) * self.inv[a];
+                near = if tn > near { tn } else { near };
+                far = if tf < far { tf } else { far };
+            }
+            let near = near * SLAB_DOWN;
+            let far = far * SLAB_UP + SLAB_ABS;
+            if near <= far {
+                mask |= 1 << c;
+            }
+            dist[c] = near;
+        }
+        (mask, dist)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::DVec3;
+
+    use super::*;
+    use crate::geometry::Aabb;
+
+    /// Every box a ray meets in f64 is handed out, at scales from 1e-4 to 1e5.
+    #[test]
+    fn the_walk_never_skips_a_box_the_ray_meets() {
+        let mut state = 77u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for (scale, offset) in [(1e-4, 0.0), (1e-4, 3.7), (1.0, -2.0), (1e5, 1e5)] {
+            let prims: Vec<Aabb> = (0..300)
+                .map(|_| {
+                    let c = DVec3::new(next(), next(), next()) * 10.0 * scale + offset;
+                    let e = DVec3::new(next(), next(), next()) * 0.3 * scale;
+                    Aabb {
+                        min: c - e,
+                        max: c + e,
+                    }
+                })
+                .collect();
+            let bvh = Bvh::build(&prims);
+            let top = TopLevel::new(&bvh);
+            for i in 0..400 {
+                let target = prims[i % prims.len()];
+                let aim =
+                    target.min + (target.max - target.min) * DVec3::new(next(), next(), next());
+                let dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
+                let origin = aim - dir * scale * 10f64.powf(next() * 4.0 - 1.0);
+                let ray = Ray::new(origin, dir);
+                let t_max = if i % 2 == 0 {
+                    f64::INFINITY
+                } else {
+                    scale * 5.0
+                };
+                for any in [false, true] {
+                    let mut found = vec![false; prims.len()];
+                    let mut limit = t_max;
+                    let mark = |slots: std::ops::Range<usize>, _: &mut f64| {
+                        for slot in slots {
+                            found[bvh.order[slot] as usize] = true;
+                        }
+                        false
+                    };
+                    let walked = if any {
+                        top.walk::<true>(&ray, &mut limit, mark)
+                    } else {
+                        top.walk::<false>(&ray, &mut limit, mark)
+                    };
+                    assert_eq!(walked, Some(false));
+                    for (p, b) in prims.iter().enumerate() {
+                        if b.hit(&ray, t_max).is_some() {
+                            assert!(found[p], "scale {scale}: box {p} skipped for ray {i}");
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
