@@ -4,7 +4,7 @@
 
 use glam::{DMat3, DVec2, DVec3};
 
-use crate::accel::{Bvh, PADDING};
+use crate::accel::{with_capacity_huge, Bvh, PADDING};
 use crate::geometry::{
     any_candidate, intersect_triangle, intersect_unit_sphere_scaled, Aabb, Motion, Ray, Transform,
     TransformDesc, TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
@@ -79,9 +79,12 @@ impl Mesh {
             .par_iter()
             .map(|&i| Aabb::from_points(&corners[i as usize]))
             .collect();
-        let bvh = Bvh::build_aligned(&bounds, BLOCK);
-        let (corners, indices): (Vec<[DVec3; 3]>, Vec<[u32; 3]>) = bvh
-            .order
+        let mut bvh = Bvh::build_aligned(&bounds, BLOCK);
+        drop(bounds);
+        // What rays read is laid out on huge pages where large (`with_capacity_huge`).
+        let slots = bvh.order.len();
+        let (mut sorted, mut sorted_indices) = (with_capacity_huge(slots), Vec::new());
+        bvh.order
             .par_iter()
             .map(|&o| match o {
                 PADDING => ([DVec3::ZERO; 3], PADDING_TRIANGLE),
@@ -90,8 +93,15 @@ impl Mesh {
                     (corners[i], indices[i])
                 }
             })
-            .unzip();
-        let blocks = corners.par_chunks(BLOCK).map(TriangleBlock::new).collect();
+            .unzip_into_vecs(&mut sorted, &mut sorted_indices);
+        let (corners, indices) = (sorted, sorted_indices);
+        let mut blocks = with_capacity_huge(slots.div_ceil(BLOCK));
+        corners
+            .par_chunks(BLOCK)
+            .map(TriangleBlock::new)
+            .collect_into_vec(&mut blocks);
+        // The triangles are stored in leaf order now; the order itself is not needed again.
+        bvh.order = Vec::new();
         Mesh {
             corners,
             indices,

@@ -5,6 +5,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::bvh::{round_down, round_up, Bvh, Node, MAX_DEPTH, NO_CHILD, WIDTH};
+use super::memory::with_capacity_huge;
 use crate::geometry::Aabb;
 
 const BINS: usize = 16;
@@ -85,7 +86,7 @@ impl Bvh {
             align_leaves(&mut tree, &order, align, &mut aligned);
             order = aligned;
         }
-        let mut nodes = Vec::with_capacity(bounds.len() / 4 + 1);
+        let mut nodes = with_capacity_huge(bounds.len() / 4 + 1);
         let root_bounds = tree.bounds();
         let depth = tree.depth();
         match &tree {
