@@ -113,6 +113,25 @@ impl Mesh {
     }
 }
 
+/// A world box around an instance of `mesh`: the transformed boxes near the root of its BVH,
+/// joined, and cut to the transformed root box. A rotated instance's transformed root box
+/// takes in much empty space (its corners), and in a crowd of instances every ray that
+/// crosses that space enters the instance for nothing.
+fn instance_bounds(mesh: &Mesh, transform: &Transform) -> Aabb {
+    let whole = transform.bounds_to_world(mesh.bvh.bounds());
+    let parts = mesh
+        .bvh
+        .boxes_near_root()
+        .into_iter()
+        .fold(Aabb::EMPTY, |acc, b| {
+            acc.union(transform.bounds_to_world(b))
+        });
+    Aabb {
+        min: whole.min.max(parts.min),
+        max: whole.max.min(parts.max),
+    }
+}
+
 /// The indices of a padding slot.
 const PADDING_TRIANGLE: [u32; 3] = [u32::MAX; 3];
 
@@ -367,8 +386,7 @@ impl World {
                 continue;
             }
             objects.push(Object::Model(i as u32));
-            let local = mesh.bvh.bounds();
-            bounds.push(m.transform.bounds_to_world(local));
+            bounds.push(instance_bounds(mesh, &m.transform));
         }
         for (i, m) in movers.iter().enumerate() {
             objects.push(Object::Mover(i as u32));
