@@ -35,14 +35,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..RenderSettings::default()
     };
     let rays = RaySets::new(&scene, &settings)?;
-    let hits = |r: &&tracer_core::geometry::Ray| world.intersect(r, rays.near, rays.far).is_some();
-    let (hit, miss): (Vec<_>, Vec<_>) = rays.primary.iter().partition(hits);
+    let hits = |r: &tracer_core::geometry::Ray| world.intersect(r, rays.near, rays.far).is_some();
+    let (hit, miss): (Vec<_>, Vec<_>) = rays.primary.iter().partition(|r| hits(r));
     let all: Vec<_> = rays.primary.iter().collect();
     for (name, set) in [("hit", &hit), ("miss", &miss), ("all", &all)] {
         let started = Instant::now();
         let mut found = 0;
         for _ in 0..passes {
-            found += set.iter().filter(hits).count();
+            found += set.iter().filter(|r| hits(r)).count();
         }
         let seconds = started.elapsed().as_secs_f64();
         let traced = (set.len() * passes).max(1) as f64;
