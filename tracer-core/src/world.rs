@@ -4,7 +4,7 @@
 
 use glam::{DMat3, DVec2, DVec3};
 
-use crate::accel::{Bvh, PADDING};
+use crate::accel::{with_capacity_huge, Bvh, PADDING};
 
 mod top;
 use crate::geometry::{
@@ -82,9 +82,12 @@ impl Mesh {
             .par_iter()
             .map(|&i| Aabb::from_points(&corners[i as usize]))
             .collect();
-        let bvh = Bvh::build_aligned(&bounds, BLOCK);
-        let (corners, indices): (Vec<[DVec3; 3]>, Vec<[u32; 3]>) = bvh
-            .order
+        let mut bvh = Bvh::build_aligned(&bounds, BLOCK);
+        drop(bounds);
+        // What rays read is laid out on huge pages where large (`with_capacity_huge`).
+        let slots = bvh.order.len();
+        let (mut sorted, mut sorted_indices) = (with_capacity_huge(slots), Vec::new());
+        bvh.order
             .par_iter()
             .map(|&o| match o {
                 PADDING => ([DVec3::ZERO; 3], PADDING_TRIANGLE),
@@ -93,8 +96,15 @@ impl Mesh {
                     (corners[i], indices[i])
                 }
             })
-            .unzip();
-        let blocks = corners.par_chunks(BLOCK).map(TriangleBlock::new).collect();
+            .unzip_into_vecs(&mut sorted, &mut sorted_indices);
+        let (corners, indices) = (sorted, sorted_indices);
+        let mut blocks = with_capacity_huge(slots.div_ceil(BLOCK));
+        corners
+            .par_chunks(BLOCK)
+            .map(TriangleBlock::new)
+            .collect_into_vec(&mut blocks);
+        // The triangles are stored in leaf order now; the order itself is not needed again.
+        bvh.order = Vec::new();
         Mesh {
             corners,
             indices,
@@ -103,6 +113,25 @@ impl Mesh {
             bvh,
             blocks,
         }
+    }
+}
+
+/// A world box around an instance of `mesh`: the transformed boxes near the root of its BVH,
+/// joined, and cut to the transformed root box. A rotated instance's transformed root box
+/// takes in much empty space (its corners), and in a crowd of instances every ray that
+/// crosses that space enters the instance for nothing.
+fn instance_bounds(mesh: &Mesh, transform: &Transform) -> Aabb {
+    let whole = transform.bounds_to_world(mesh.bvh.bounds());
+    let parts = mesh
+        .bvh
+        .boxes_near_root()
+        .into_iter()
+        .fold(Aabb::EMPTY, |acc, b| {
+            acc.union(transform.bounds_to_world(b))
+        });
+    Aabb {
+        min: whole.min.max(parts.min),
+        max: whole.max.min(parts.max),
     }
 }
 
@@ -362,8 +391,7 @@ impl World {
                 continue;
             }
             objects.push(Object::Model(i as u32));
-            let local = mesh.bvh.bounds();
-            bounds.push(m.transform.bounds_to_world(local));
+            bounds.push(instance_bounds(mesh, &m.transform));
         }
         for (i, m) in movers.iter().enumerate() {
             objects.push(Object::Mover(i as u32));

@@ -5,6 +5,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::bvh::{round_down, round_up, Bvh, Node, MAX_DEPTH, NO_CHILD, WIDTH};
+use super::memory::with_capacity_huge;
 use crate::geometry::Aabb;
 
 const BINS: usize = 16;
@@ -62,13 +63,11 @@ impl Bvh {
         if bounds.is_empty() {
             return Bvh::default();
         }
-        let centroids: Vec<DVec3> = bounds.par_iter().map(Aabb::centroid).collect();
         let (root_bounds, root_centroids) = bounds
             .par_iter()
-            .zip(&centroids)
             .fold(
                 || (Aabb::EMPTY, Aabb::EMPTY),
-                |(b, c), (pb, pc)| (b.union(*pb), c.grow(*pc)),
+                |(b, c), pb| (b.union(*pb), c.grow(pb.centroid())),
             )
             .reduce(
                 || (Aabb::EMPTY, Aabb::EMPTY),
@@ -76,8 +75,8 @@ impl Bvh {
             );
         let builder = Builder {
             bounds,
-            centroids: &centroids,
             align,
+            align_shift: align.is_power_of_two().then(|| align.trailing_zeros()),
         };
         let mut tree = builder.build(&mut order, 0, 0, root_bounds, root_centroids);
         if align > 1 {
@@ -85,7 +84,7 @@ impl Bvh {
             align_leaves(&mut tree, &order, align, &mut aligned);
             order = aligned;
         }
-        let mut nodes = Vec::with_capacity(bounds.len() / 4 + 1);
+        let mut nodes = with_capacity_huge(bounds.len() / 4 + 1);
         let root_bounds = tree.bounds();
         let depth = tree.depth();
         match &tree {
@@ -211,10 +210,14 @@ fn pack_node(slots: &[&Tree], nodes: &mut Vec<Node>) -> u32 {
 }
 
 struct Builder<'a> {
+    /// The primitives' bounds. Centroids are worked out from them where needed (the same
+    /// values): an array of them cost 24 bytes per primitive, 240 MB for 10M triangles, and
+    /// the time the kernel took to hand out and zero those pages.
     bounds: &'a [Aabb],
-    centroids: &'a [DVec3],
     /// The owner tests primitives in blocks of this many at the cost of one.
     align: usize,
+    /// log2(`align`) where `align` is a power of two.
+    align_shift: Option<u32>,
 }
 
 /// Primitives whose centroid falls in a bin below `bin` on `axis` go to the left child.
@@ -236,57 +239,75 @@ impl Split {
     }
 }
 
-/// Per axis and bin: the union of the primitives' bounds (min x, y, z, max x, y, z) and
-/// their number.
+/// A box as (min x, y, z, +∞, −max x, y, z, +∞): growing it is one lane-wise minimum over
+/// eight lanes, which compiles to a few SIMD min instructions (the six scalar compare-and-
+/// selects it replaces were most of the binning's time). Negation is exact, so the maxima
+/// read back are the same f64 values.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct BinBox([f64; 8]);
+
+const EMPTY_BIN: BinBox = BinBox([f64::INFINITY; 8]);
+
+impl BinBox {
+    #[inline(always)]
+    fn of(b: &Aabb) -> BinBox {
+        let inf = f64::INFINITY;
+        BinBox([
+            b.min.x, b.min.y, b.min.z, inf, -b.max.x, -b.max.y, -b.max.z, inf,
+        ])
+    }
+
+    /// `self` grown by `b`. Like `f64::min` (and the former scalar code, tie for tie), a NaN
+    /// in `b` leaves `self` as it was.
+    #[inline(always)]
+    fn grow(&mut self, b: &BinBox) {
+        for k in 0..8 {
+            self.0[k] = if b.0[k] < self.0[k] {
+                b.0[k]
+            } else {
+                self.0[k]
+            };
+        }
+    }
+
+    /// Surface area of a non-empty box (the sweeps only measure boxes holding primitives).
+    #[inline(always)]
+    fn area(&self) -> f64 {
+        let b = &self.0;
+        let (x, y, z) = (-b[4] - b[0], -b[5] - b[1], -b[6] - b[2]);
+        2.0 * (x * y + y * z + z * x)
+    }
+
+    fn to_aabb(&self) -> Aabb {
+        let b = &self.0;
+        Aabb {
+            min: DVec3::new(b[0], b[1], b[2]),
+            max: DVec3::new(-b[4], -b[5], -b[6]),
+        }
+    }
+}
+
+/// Per axis and bin: the union of the primitives' bounds and their number.
 #[derive(Clone)]
 struct Bins {
-    bounds: [[[f64; 6]; BINS]; 3],
+    bounds: [[BinBox; BINS]; 3],
     counts: [[u32; BINS]; 3],
-}
-
-const EMPTY_BOX: [f64; 6] = [
-    f64::INFINITY,
-    f64::INFINITY,
-    f64::INFINITY,
-    f64::NEG_INFINITY,
-    f64::NEG_INFINITY,
-    f64::NEG_INFINITY,
-];
-
-/// `acc` grown by `b`. Written so that it compiles to plain min/max instructions; like
-/// `f64::min`, a NaN in `b` leaves `acc` as it was.
-#[inline(always)]
-fn grow_box(acc: &mut [f64; 6], b: &[f64; 6]) {
-    for i in 0..3 {
-        acc[i] = if b[i] < acc[i] { b[i] } else { acc[i] };
-        acc[i + 3] = if b[i + 3] > acc[i + 3] {
-            b[i + 3]
-        } else {
-            acc[i + 3]
-        };
-    }
-}
-
-fn to_aabb(b: &[f64; 6]) -> Aabb {
-    Aabb {
-        min: DVec3::new(b[0], b[1], b[2]),
-        max: DVec3::new(b[3], b[4], b[5]),
-    }
 }
 
 impl Bins {
     fn empty() -> Bins {
         Bins {
-            bounds: [[EMPTY_BOX; BINS]; 3],
+            bounds: [[EMPTY_BIN; BINS]; 3],
             counts: [[0; BINS]; 3],
         }
     }
 
-    /// Exact (min, max and integer sums), so any grouping of the merges gives the same bins.
+    /// Exact (min and integer sums), so any grouping of the merges gives the same bins.
     fn merge(mut self, o: Bins) -> Bins {
         for axis in 0..3 {
             for bin in 0..BINS {
-                grow_box(&mut self.bounds[axis][bin], &o.bounds[axis][bin]);
+                self.bounds[axis][bin].grow(&o.bounds[axis][bin]);
                 self.counts[axis][bin] += o.counts[axis][bin];
             }
         }
@@ -345,25 +366,29 @@ impl Builder<'_> {
         }
     }
 
-    fn bin(&self, prims: &[u32], lo: DVec3, scale: DVec3, bins: usize) -> Bins {
+    /// Bins `prims` into `out` (empty on entry). Filled in place: returned by value, the
+    /// 3 KiB of bins were copied once per node.
+    fn bin(&self, prims: &[u32], lo: DVec3, scale: DVec3, bins: usize, out: &mut Bins) {
         if prims.len() >= PARALLEL_BINNING {
-            return prims
+            *out = prims
                 .par_chunks(PARALLEL_BINNING / 2)
-                .map(|chunk| self.bin(chunk, lo, scale, bins))
+                .map(|chunk| {
+                    let mut part = Bins::empty();
+                    self.bin(chunk, lo, scale, bins, &mut part);
+                    part
+                })
                 .reduce(Bins::empty, Bins::merge);
+            return;
         }
-        let mut out = Bins::empty();
         for &p in prims {
-            let c = self.centroids[p as usize];
-            let b = self.bounds[p as usize];
-            let b = [b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z];
+            let bounds = &self.bounds[p as usize];
+            let (c, b) = (bounds.centroid(), BinBox::of(bounds));
             for axis in 0..3 {
                 let bin = bin_of(c[axis], lo[axis], scale[axis], bins);
                 out.counts[axis][bin] += 1;
-                grow_box(&mut out.bounds[axis][bin], &b);
+                out.bounds[axis][bin].grow(&b);
             }
         }
-        out
     }
 
     /// The cheapest binned SAH split over all three axes (binned in one pass), or None when
@@ -375,8 +400,12 @@ impl Builder<'_> {
         let nbins = prims.len().clamp(2, BINS);
         let per = |e: f64| if e > 0.0 { nbins as f64 / e } else { 0.0 };
         let scale = DVec3::new(per(extent.x), per(extent.y), per(extent.z));
-        let bins = self.bin(prims, lo, scale, nbins);
-        let mut best: Option<(f64, usize, usize, Aabb, Aabb)> = None;
+        let mut bins = Bins::empty();
+        self.bin(prims, lo, scale, nbins, &mut bins);
+        let mut best: Option<(f64, usize, usize)> = None;
+        // Each suffix's box and count, from the right; reused across axes.
+        let mut right_box = [EMPTY_BIN; BINS];
+        let mut right_count = [0usize; BINS];
         for axis in 0..3 {
             // NaN extents are skipped too.
             let usable = extent[axis] > 0.0;
@@ -384,33 +413,40 @@ impl Builder<'_> {
                 continue;
             }
             let (boxes, counts) = (&bins.bounds[axis], &bins.counts[axis]);
-            // Sweep from the right for each suffix's box and count, then from the left.
-            let mut right_box = [EMPTY_BOX; BINS];
-            let mut right_count = [0usize; BINS];
-            let mut acc = EMPTY_BOX;
+            let mut acc = EMPTY_BIN;
             let mut count = 0;
             for i in (1..nbins).rev() {
-                grow_box(&mut acc, &boxes[i]);
+                acc.grow(&boxes[i]);
                 count += counts[i] as usize;
                 right_box[i] = acc;
                 right_count[i] = count;
             }
-            let mut acc = EMPTY_BOX;
+            let mut acc = EMPTY_BIN;
             let mut count = 0;
             for split in 1..nbins {
-                grow_box(&mut acc, &boxes[split - 1]);
+                acc.grow(&boxes[split - 1]);
                 count += counts[split - 1] as usize;
                 if count == 0 || right_count[split] == 0 {
                     continue;
                 }
-                let cost = area(&acc) * self.blocks(count)
-                    + area(&right_box[split]) * self.blocks(right_count[split]);
+                let cost = acc.area() * self.blocks(count)
+                    + right_box[split].area() * self.blocks(right_count[split]);
                 if best.is_none_or(|(c, ..)| cost < c) {
-                    best = Some((cost, axis, split, to_aabb(&acc), to_aabb(&right_box[split])));
+                    best = Some((cost, axis, split));
                 }
             }
         }
-        let (cost, axis, bin, left, right) = best?;
+        let (cost, axis, bin) = best?;
+        // The children's boxes, for the best split only.
+        // (Grown in the sweeps' orders, so that even the sign of a zero comes out the same.)
+        let (mut left, mut right) = (EMPTY_BIN, EMPTY_BIN);
+        for b in &bins.bounds[axis][..bin] {
+            left.grow(b);
+        }
+        for b in bins.bounds[axis][bin..nbins].iter().rev() {
+            right.grow(b);
+        }
+        let (left, right) = (left.to_aabb(), right.to_aabb());
         let split_cost =
             TRAVERSAL_COST + INTERSECT_COST * cost / bounds.surface_area().max(f64::MIN_POSITIVE);
         let leaf_cost = INTERSECT_COST * self.blocks(prims.len());
@@ -437,7 +473,12 @@ impl Builder<'_> {
     /// The intersection cost of `n` primitives, in blocks.
     #[inline(always)]
     fn blocks(&self, n: usize) -> f64 {
-        n.div_ceil(self.align) as f64
+        // A shift where `align` is a power of two (always, in practice): the sweeps call
+        // this twice per candidate split, and an integer division cost more than the rest.
+        match self.align_shift {
+            Some(shift) => ((n + self.align - 1) >> shift) as f64,
+            None => n.div_ceil(self.align) as f64,
+        }
     }
 
     /// In-place partition by `split`; returns the number of primitives going left and the
@@ -446,7 +487,7 @@ impl Builder<'_> {
         let (mut left, mut right) = (Aabb::EMPTY, Aabb::EMPTY);
         let mut i = 0;
         for j in 0..prims.len() {
-            let c = self.centroids[prims[j] as usize];
+            let c = self.bounds[prims[j] as usize].centroid();
             if split.goes_left(c[split.axis]) {
                 left = left.grow(c);
                 prims.swap(i, j);
@@ -466,11 +507,4 @@ fn prims_len(a: &[u32], b: &[u32]) -> usize {
 #[inline(always)]
 fn bin_of(c: f64, lo: f64, scale: f64, bins: usize) -> usize {
     (((c - lo) * scale) as usize).min(bins - 1)
-}
-
-/// Surface area of a non-empty box (the sweeps only measure boxes holding primitives).
-#[inline(always)]
-fn area(b: &[f64; 6]) -> f64 {
-    let (x, y, z) = (b[3] - b[0], b[4] - b[1], b[5] - b[2]);
-    2.0 * (x * y + y * z + z * x)
 }

@@ -58,6 +58,35 @@ impl Bvh {
         self.depth
     }
 
+    /// Boxes that together hold every primitive: the children of the root and, where those
+    /// are interior, their children (at most `WIDTH`² boxes, f32-rounded outward). An
+    /// instance's world box is far tighter as the union of these boxes transformed than as
+    /// the transformed root box, whose corners stick out once the instance is rotated.
+    pub fn boxes_near_root(&self) -> Vec<Aabb> {
+        let Some(root) = self.nodes.first() else {
+            return Vec::new();
+        };
+        let box_of = |node: &Node, c: usize| {
+            let b = &node.bounds;
+            Aabb {
+                min: glam::DVec3::new(b[0][c] as f64, b[2][c] as f64, b[4][c] as f64),
+                max: glam::DVec3::new(b[1][c] as f64, b[3][c] as f64, b[5][c] as f64),
+            }
+        };
+        let mut out = Vec::new();
+        for c in (0..WIDTH).filter(|&c| root.index[c] != NO_CHILD) {
+            if root.count[c] > 0 {
+                out.push(box_of(root, c));
+                continue;
+            }
+            let child = &self.nodes[root.index[c] as usize];
+            for g in (0..WIDTH).filter(|&g| child.index[g] != NO_CHILD) {
+                out.push(box_of(child, g));
+            }
+        }
+        out
+    }
+
     /// Visits every leaf the ray may reach before `*t_max`, nearest child first. `leaf` gets
     /// a primitive range and shrinks `t_max` when it finds a closer hit; returning true stops
     /// the traversal (any-hit queries).
@@ -735,6 +764,24 @@ mod tests {
             });
             assert_eq!(visited, n);
         }
+    }
+
+    #[test]
+    fn boxes_near_the_root_hold_every_primitive() {
+        let prims = boxes(3000);
+        let bvh = Bvh::build_aligned(&prims, 4);
+        let near = bvh.boxes_near_root();
+        assert!(
+            near.len() > WIDTH && near.len() <= WIDTH * WIDTH,
+            "{}",
+            near.len()
+        );
+        for p in &prims {
+            assert!(near
+                .iter()
+                .any(|b| b.min.cmple(p.min).all() && b.max.cmpge(p.max).all()));
+        }
+        assert!(Bvh::build(&[]).boxes_near_root().is_empty());
     }
 
     #[test]

@@ -4,6 +4,8 @@
 
 mod build;
 mod bvh;
+mod memory;
 
 pub use build::PADDING;
 pub use bvh::{Bvh, Node};
+pub(crate) use memory::with_capacity_huge;
