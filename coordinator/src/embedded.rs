@@ -15,6 +15,9 @@ use crate::config::{FarmConfig, Limits};
 use crate::farm::Farm;
 use tracer_core::LoadLimits;
 
+/// Tiles each local worker renders at once on its one thread pool (see `start`).
+const SLOTS: usize = 2;
+
 /// A running in-process farm. Call [`EmbeddedFarm::shutdown`] to stop it cleanly.
 pub struct EmbeddedFarm {
     client: Client,
@@ -50,15 +53,14 @@ impl EmbeddedFarm {
     ) -> Result<Self, String> {
         let threads = threads.max(1);
         let workers = workers.clamp(1, threads);
-        let (data_dir, temp_dir) = match data_dir {
-            Some(dir) => (dir, None),
-            None => {
-                let temp = tempfile::Builder::new()
+        let temp_dir = match data_dir {
+            Some(_) => None,
+            None => Some(
+                tempfile::Builder::new()
                     .prefix("tessera-farm-")
                     .tempdir()
-                    .map_err(|e| format!("creating a temporary data dir: {e}"))?;
-                (temp.path().to_path_buf(), Some(temp))
-            }
+                    .map_err(|e| format!("creating a temporary data dir: {e}"))?,
+            ),
         };
         // Every core is already busy with a worker: straggler copies would only compete. The
         // scene is the user's own, on their own machine: it loads whatever `tracer render`
@@ -73,8 +75,20 @@ impl EmbeddedFarm {
             },
             ..defaults
         };
-        let farm =
-            Farm::open(&data_dir, config, Arc::new(SystemClock)).map_err(|e| e.to_string())?;
+        // A farm kept in a temporary folder is deleted at exit, so its database stays in
+        // memory: creating and committing a durable one cost fsyncs worth 1% of a short render.
+        let farm = match (&data_dir, &temp_dir) {
+            (Some(dir), _) => Farm::open(dir, config, Arc::new(SystemClock)),
+            (None, Some(temp)) => Farm::open_scratch(temp.path(), config, Arc::new(SystemClock)),
+            (None, None) => unreachable!("a temporary dir is made when none is given"),
+        }
+        .map_err(|e| e.to_string())?;
+        // The workers render the scene the coordinator built to check the submission.
+        let scenes = SceneCache::new();
+        {
+            let scenes = scenes.clone();
+            farm.share_built_scenes(move |job_id, scene| scenes.insert(job_id, Arc::new(scene)));
+        }
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
             .await
             .map_err(|e| format!("binding a loopback port: {e}"))?;
@@ -95,15 +109,32 @@ impl EmbeddedFarm {
         let client = Client::new(&url, Some(token.clone())).map_err(|e| e.to_string())?;
 
         let (stop_workers, shutdown) = Shutdown::new();
-        let scenes = SceneCache::new();
         let mut worker_tasks = Vec::new();
         for i in 0..workers {
             // Spread the threads: the first `threads % workers` workers get one more.
             let n = threads / workers + usize::from(i < threads % workers);
-            let config = WorkerConfig::new(format!("local-{i}"), n);
-            let worker = Worker::new(client.clone(), config, scenes.clone())?;
-            let shutdown = shutdown.clone();
-            worker_tasks.push(tokio::spawn(async move { worker.run(shutdown).await }));
+            let name = format!("local-{i}");
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .thread_name(move |k| format!("local-{i}-render-{k}"))
+                .build()
+                .map_err(|e| e.to_string())?;
+            let pool = Arc::new(pool);
+            // Each worker's pool is fed by SLOTS pull loops (each its own identity with the
+            // coordinator, so each holds its own lease): while one loop sends its pixels and
+            // asks for the next tile, or its tile's last rows occupy a thread or two, the
+            // pool's other threads render the other loop's tile instead of waiting.
+            for slot in 0..SLOTS {
+                let label = match slot {
+                    0 => name.clone(),
+                    _ => format!("{name}.{slot}"),
+                };
+                let config = WorkerConfig::new(label, n);
+                let worker =
+                    Worker::with_pool(client.clone(), config, scenes.clone(), pool.clone());
+                let shutdown = shutdown.clone();
+                worker_tasks.push(tokio::spawn(async move { worker.run(shutdown).await }));
+            }
         }
         Ok(Self {
             client,

@@ -105,12 +105,24 @@ impl Worker {
             .thread_name(move |i| format!("{name}-render-{i}"))
             .build()
             .map_err(|e| e.to_string())?;
-        Ok(Self {
+        Ok(Self::with_pool(client, config, scenes, Arc::new(pool)))
+    }
+
+    /// A worker that renders on `pool`, which other workers may share. Two pull loops on one
+    /// pool keep its threads busy while either waits on the coordinator or finishes the last
+    /// rows of its tile: rayon hands idle threads the other loop's rows (`EmbeddedFarm`).
+    pub fn with_pool(
+        client: Client,
+        config: WorkerConfig,
+        scenes: Arc<SceneCache>,
+        pool: Arc<rayon::ThreadPool>,
+    ) -> Self {
+        Self {
             client,
             config,
             scenes,
-            pool: Arc::new(pool),
-        })
+            pool,
+        }
     }
 
     /// Pulls and renders tiles until `shutdown` fires. Returns an error only for problems no

@@ -39,6 +39,22 @@ impl SceneCache {
         Arc::new(Self::default())
     }
 
+    /// Stores the scene of `job_id` built elsewhere in this process (the embedded farm's
+    /// coordinator builds it to check the submission), so no worker fetches or builds it
+    /// again. A scene already there, or being loaded, stays.
+    pub fn insert(&self, job_id: u64, scene: Arc<Scene>) {
+        let mut slots = self.slots.lock().unwrap();
+        let slot = match slots.iter().position(|(id, _)| *id == job_id) {
+            Some(i) => slots.remove(i).unwrap().1,
+            None => Slot::default(),
+        };
+        let _ = slot.set(scene);
+        slots.push_back((job_id, slot));
+        while slots.len() > KEEP_JOBS {
+            slots.pop_front();
+        }
+    }
+
     /// The scene of `job_id`, fetching and building it on first use. Concurrent callers for
     /// the same job wait for one load; a failed load is not cached, so it is retried.
     pub async fn get(&self, client: &Client, job_id: u64) -> Result<Arc<Scene>, LoadError> {

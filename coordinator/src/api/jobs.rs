@@ -281,8 +281,10 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
         let scene = Scene::build_with_limits(&desc, &scene_file, &assets, &load_limits)
             .map_err(|e| scene_error(&e))?;
         check_frames(&spec, scene.frame_count()).map_err(Failure::bad_request)?;
-        // Not needed to store the job: give their memory back before the blobs are written.
-        drop((scene, desc));
+        // Not needed to store the job: give their memory back before the blobs are written,
+        // unless the scene goes to workers in this process (`Farm::share_built_scenes`).
+        drop(desc);
+        let scene = farm.wants_built_scenes().then_some(scene);
         let files = farm.files();
         let scene_hash = files.put_blob(text.as_bytes())?;
         let mut bundle = Vec::new();
@@ -295,13 +297,16 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
         }
         bundle.sort_by(|a, b| a.path.cmp(&b.path));
         let name = spec.name.clone().unwrap_or_else(|| scene_file.clone());
-        Ok(farm.submit(NewJob {
-            name,
-            scene_file,
-            scene_hash,
-            spec,
-            assets: bundle,
-        })?)
+        Ok(farm.submit_built(
+            NewJob {
+                name,
+                scene_file,
+                scene_hash,
+                spec,
+                assets: bundle,
+            },
+            scene,
+        )?)
     })
     .await
 }

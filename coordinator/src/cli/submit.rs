@@ -102,8 +102,14 @@ pub async fn wait_for(
     );
     let mut unreachable_since: Option<std::time::Instant> = None;
     loop {
+        let mut pause = every;
         match client.job(id).await {
             Ok(info) => {
+                // Every tile is in: only the image's assembly is left, which takes a few
+                // milliseconds, so a full pause would be most of the wait for the answer.
+                if info.tiles_done == info.tiles_total {
+                    pause = (every / 10).max(Duration::from_millis(1));
+                }
                 unreachable_since = None;
                 bar.set_length(info.tiles_total as u64);
                 bar.set_position(info.tiles_done as u64);
@@ -129,7 +135,7 @@ pub async fn wait_for(
                 return Err(e);
             }
         }
-        tokio::time::sleep(every).await;
+        tokio::time::sleep(pause).await;
     }
 }
 

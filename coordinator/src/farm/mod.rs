@@ -31,7 +31,7 @@ mod workers;
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock, Weak};
 use std::thread::JoinHandle;
 
 use tokio::sync::{broadcast, Notify};
@@ -52,6 +52,7 @@ use events::Events;
 use job::Job;
 use state::State;
 use tiles::TileBook;
+use tracer_core::Scene;
 
 #[derive(Debug, thiserror::Error)]
 pub enum FarmError {
@@ -97,7 +98,12 @@ pub struct Farm {
     /// This farm, for the assembly threads it starts.
     me: Weak<Farm>,
     assemblies: Mutex<Vec<JoinHandle<()>>>,
+    /// Takes the scenes submissions build to check them ([`Farm::share_built_scenes`]).
+    scene_sink: OnceLock<SceneSink>,
 }
+
+/// Where a submission's checked scene goes instead of being dropped: (job id, scene).
+type SceneSink = Box<dyn Fn(u64, Scene) + Send + Sync>;
 
 impl Farm {
     /// Opens (or creates) the data dir and resumes every unfinished job in it. Stored data
@@ -109,6 +115,17 @@ impl Farm {
         let db = Db::open(&data_dir.join("tessera.db"))?;
         let files = Files::open(data_dir)?;
         Self::with_store(db, files, config, clock)
+    }
+
+    /// A farm that lives as long as its process: the database in memory, the files in `dir`
+    /// (the embedded farm's temporary folder, removed when it stops). Nothing outlives the
+    /// process, so no commit waits for the disk.
+    pub fn open_scratch(
+        dir: &Path,
+        config: FarmConfig,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Arc<Farm>> {
+        Self::with_store(Db::open_in_memory()?, Files::open(dir)?, config, clock)
     }
 
     fn with_store(
@@ -133,6 +150,7 @@ impl Farm {
             commits: commits::Commits::default(),
             me: me.clone(),
             assemblies: Mutex::new(Vec::new()),
+            scene_sink: OnceLock::new(),
         });
         // What resuming changed is stored before anything is served.
         farm.flush()?;
@@ -226,9 +244,27 @@ impl Farm {
         }
     }
 
+    /// Hands every scene that a submission builds to check it to `sink`, with its job id,
+    /// instead of dropping it: the embedded farm's workers, in this process, then render that
+    /// scene rather than fetch the bundle and build it a second time. Set once.
+    pub fn share_built_scenes(&self, sink: impl Fn(u64, Scene) + Send + Sync + 'static) {
+        let _ = self.scene_sink.set(Box::new(sink));
+    }
+
+    /// Whether a submission should keep the scene it built for [`Farm::submit_built`].
+    pub fn wants_built_scenes(&self) -> bool {
+        self.scene_sink.get().is_some()
+    }
+
     /// Accepts a job. Its tile count is checked against the budget and its tile book built
     /// before the lock is taken; under the lock it is only written and inserted.
     pub fn submit(&self, new: NewJob) -> Result<JobInfo> {
+        self.submit_built(new, None)
+    }
+
+    /// [`Farm::submit`], handing `scene` (the job's scene, already built) to the sink set by
+    /// [`Farm::share_built_scenes`] before any worker can lease a tile of the job.
+    pub fn submit_built(&self, new: NewJob, scene: Option<Scene>) -> Result<JobInfo> {
         let grid = TileGrid::new(&new.spec);
         self.config
             .limits
@@ -272,6 +308,11 @@ impl Farm {
         let mut state = self.lock();
         let id = state.add_job(&stored, job)?;
         let info = state.job(id)?.info(now);
+        // Under the lock, so no lease of the job is granted before its scene is shared (the
+        // sink only stores it).
+        if let (Some(scene), Some(sink)) = (scene, self.scene_sink.get()) {
+            sink(id, scene);
+        }
         drop(state);
         self.flush()?;
         tracing::info!(
