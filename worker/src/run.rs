@@ -108,9 +108,9 @@ impl Worker {
         Ok(Self::with_pool(client, config, scenes, Arc::new(pool)))
     }
 
-    /// A worker that renders on `pool`, which other workers may share. Two pull loops on one
-    /// pool keep its threads busy while either waits on the coordinator or finishes the last
-    /// rows of its tile: rayon hands idle threads the other loop's rows (`EmbeddedFarm`).
+    /// A worker that renders on `pool`, which other workers may share. Several pull loops on
+    /// one pool keep its threads busy while one waits on the coordinator or finishes the last
+    /// rows of its tile: rayon hands idle threads the other loops' rows (`EmbeddedFarm`).
     pub fn with_pool(
         client: Client,
         config: WorkerConfig,

@@ -12,7 +12,7 @@ use worker::available_cores;
 
 use super::submit::{collect_submission, describe, wait_for};
 use super::{Failure, SettingsArgs};
-use crate::embedded::EmbeddedFarm;
+use crate::embedded::{scratch_bytes, EmbeddedFarm};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -49,7 +49,15 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
     let workers = args.workers.unwrap_or(1);
     let runtime = super::runtime()?;
     runtime.block_on(async move {
-        let farm = EmbeddedFarm::start(args.data_dir.clone(), workers, threads).await?;
+        let submitted = submission.scene.len() as u64
+            + submission
+                .assets
+                .iter()
+                .map(|(_, b)| b.len() as u64)
+                .sum::<u64>();
+        let scratch = scratch_bytes(&submission.spec, submitted);
+        let farm =
+            EmbeddedFarm::start(args.data_dir.clone(), workers, threads, Some(scratch)).await?;
         // The fragment hands the page the token without sending it anywhere.
         eprintln!(
             "dashboard (while it renders): {}/#token={}",

@@ -139,7 +139,7 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
     for &n in &workers {
         let config = format!("farm: {n} worker{}", plural(n));
         let measured = runtime.block_on(async {
-            let farm = EmbeddedFarm::start(None, n, threads).await?;
+            let farm = EmbeddedFarm::start(None, n, threads, None).await?;
             let mut out = Vec::new();
             let mut result = Ok(());
             for &spp in &args.spp {

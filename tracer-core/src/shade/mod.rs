@@ -123,7 +123,9 @@ impl<'a> Tracer<'a> {
     }
 
     /// Colour seen along `ray` (unit direction) at recursion `level` (the eye ray is level 0;
-    /// a ray at level max_depth contributes black).
+    /// a ray at level max_depth contributes black). `slots`: the eye ray's candidates (see
+    /// [`Tracer::sample`]), None past level 0.
+    #[allow(clippy::too_many_arguments)]
     fn radiance(
         &mut self,
         ray: &Ray,
@@ -146,6 +148,7 @@ impl<'a> Tracer<'a> {
     }
 
     /// The colour along `ray`, and the distance to what it hit (infinite on a miss).
+    #[allow(clippy::too_many_arguments)]
     fn trace(
         &mut self,
         ray: &Ray,
