@@ -7,8 +7,8 @@
 //!
 //! Decisions are made per [`BLOCK`]×[`BLOCK`] block of the image (blocks are fixed to the image,
 //! not to tiles, so any tile size gives the same decisions). A block's error estimate comes
-//! from two half-buffers: the mean luminance of its pixels' even-index samples (A) and of
-//! their odd-index samples (B). |A − B| / 2 estimates the standard error of the pixel's mean;
+//! from two interleaved half-buffers: the mean luminance of each pixel's samples of even bit
+//! parity (A) and of odd bit parity (B) ([`in_second_half`]). |A − B| / 2 estimates the standard error of the pixel's mean;
 //! the block's relative error is Σ|A − B|/2 over its pixels divided by Σ max(I, [`DARK_FLOOR`])
 //! (I the pixel's mean luminance), so dark blocks are not sampled forever for noise nobody
 //! can see. A block stops once it has at least `spp_min` samples and its error is at most the
@@ -19,8 +19,8 @@ use crate::film::Image;
 use crate::settings::TileRect;
 
 /// f64 values kept per pixel: the sum of the samples' r, g, b (the one-shot render's sum),
-/// then the sum of every sample's luminance and the sum of the odd-index samples' luminance
-/// (the two half-buffers of the error estimate).
+/// then the sum of every sample's luminance and the sum of the luminance of the samples in the
+/// second half-buffer ([`in_second_half`]): the two half-buffers of the error estimate.
 pub const SUMS: usize = 5;
 
 /// The edge of a decision block, in pixels.
@@ -29,6 +29,23 @@ pub const BLOCK: u32 = 8;
 /// Luminance below this counts as this much when an error is made relative: the noise of a
 /// near-black pixel is invisible, however large relative to its value.
 pub const DARK_FLOOR: f64 = 0.05;
+
+/// Whether sample `k` belongs to the second half-buffer (B): odd bit parity (the Thue–Morse
+/// sequence). The progressive order bit-reverses the sample index into the pixel's Morton
+/// code, so splitting by k's lowest bit would put the halves in opposite halves of the pixel
+/// (A − B would measure an edge, not noise); splitting by parity gives each half one sample
+/// of every diagonal pair, so both cover the whole pixel in every prefix of 2^j samples.
+#[inline]
+pub fn in_second_half(k: u32) -> bool {
+    k.count_ones() % 2 == 1
+}
+
+/// How many of samples 0..n are in the second half-buffer.
+pub fn second_half_count(n: u32) -> u32 {
+    // Each pair (2m, 2m + 1) has one sample in each half.
+    let pairs = n / 2;
+    pairs + (n % 2 == 1 && in_second_half(n - 1)) as u32
+}
 
 /// A sample's contribution to the error estimate: its mean channel, each channel clamped to
 /// the displayable [0, 1] (an out-of-range sample is no noisier on screen than a white one).
@@ -139,14 +156,15 @@ impl SumImage {
     fn block_error_parts(&self, block: usize, n: u32) -> (f64, f64) {
         let cols = self.width.div_ceil(BLOCK) as usize;
         let (bx, by) = ((block % cols) as u32 * BLOCK, (block / cols) as u32 * BLOCK);
-        let (even_n, odd_n) = (n.div_ceil(2) as f64, (n / 2) as f64);
+        let second = second_half_count(n);
+        let (first_n, second_n) = ((n - second.min(n)) as f64, second as f64);
         let (mut num, mut den) = (0.0, 0.0);
         for y in by..(by + BLOCK).min(self.height) {
             for x in bx..(bx + BLOCK).min(self.width) {
                 let p = (y as usize * self.width as usize + x as usize) * SUMS;
-                let (all, odd) = (self.data[p + 3], self.data[p + 4]);
+                let (all, second) = (self.data[p + 3], self.data[p + 4]);
                 if n >= 2 {
-                    num += ((all - odd) / even_n - odd / odd_n).abs() / 2.0;
+                    num += ((all - second) / first_n - second / second_n).abs() / 2.0;
                 }
                 den += (all / n.max(1) as f64).max(DARK_FLOOR);
             }
@@ -243,6 +261,16 @@ mod tests {
         assert_eq!(pass_target(0, 1, 3), 1);
         assert_eq!(pass_target(1, 1, 3), 2);
         assert_eq!(pass_target(0, 10, 4), 4);
+    }
+
+    #[test]
+    fn the_halves_split_every_pair_and_are_counted() {
+        let second: Vec<u32> = (0..8).filter(|&k| in_second_half(k)).collect();
+        assert_eq!(second, [1, 2, 4, 7]);
+        for n in 0..40 {
+            let counted = (0..n).filter(|&k| in_second_half(k)).count() as u32;
+            assert_eq!(second_half_count(n), counted, "n {n}");
+        }
     }
 
     #[test]

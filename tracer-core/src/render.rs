@@ -9,7 +9,7 @@ use std::sync::Arc;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::adaptive::{luminance, SUMS};
+use crate::adaptive::{in_second_half, luminance, SUMS};
 use crate::camera::{Camera, EyeRays};
 use crate::film::Image;
 use crate::photon::{caustic_map, CausticMap};
@@ -280,7 +280,7 @@ impl RowShader<'_> {
             if ESTIMATE {
                 let lum = luminance(color.x, color.y, color.z);
                 acc.lum += lum;
-                if sample % 2 == 1 {
+                if in_second_half(sample) {
                     acc.lum_odd += lum;
                 }
             }

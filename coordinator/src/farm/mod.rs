@@ -9,6 +9,7 @@
 //! - [`resume`]: the state rebuilt from the data dir at start-up;
 //! - [`workers`]: the worker registry; [`events`]: change notifications.
 //!
+//! - [`progressive`]: progressive jobs' passes, their stopping rules and sums file.
 //! - [`commits`]: group commit of the hot transitions (one SQLite commit for many requests).
 //!
 //! [`Farm`] is the front: it owns the lock, the files and the clock, and wakes long-polling
@@ -23,6 +24,7 @@ mod completion;
 mod events;
 mod job;
 mod leasing;
+mod progressive;
 mod resume;
 mod state;
 mod tiles;
@@ -228,7 +230,8 @@ impl Farm {
 
     /// Accepts a job. Its tile count is checked against the budget and its tile book built
     /// before the lock is taken; under the lock it is only written and inserted.
-    pub fn submit(&self, new: NewJob) -> Result<JobInfo> {
+    pub fn submit(&self, mut new: NewJob) -> Result<JobInfo> {
+        progressive::normalize(&mut new.spec)?;
         let grid = TileGrid::new(&new.spec);
         self.config
             .limits
@@ -268,6 +271,7 @@ impl Farm {
             tile_ms_total: 0,
             tiles_timed: 0,
             assembling: false,
+            progress: progressive::Progress::new(&stored.spec).map(Box::new),
         };
         let mut state = self.lock();
         let id = state.add_job(&stored, job)?;
@@ -408,5 +412,7 @@ impl Farm {
     }
 }
 
+#[cfg(test)]
+mod progressive_tests;
 #[cfg(test)]
 mod tests;
