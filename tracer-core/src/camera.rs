@@ -167,12 +167,14 @@ impl<'a> EyeRays<'a> {
         &self.camera
     }
 
-    /// The order of pixel (x, y)'s strata under `order` into `out` (`out[k]` is sample k's
-    /// stratum); left empty for the grid order, where sample k takes stratum k.
-    pub fn strata_order(&self, order: SampleOrder, x: u32, y: u32, out: &mut Vec<u32>) {
+    /// The strata of pixel (x, y)'s first `limit` samples under `order` into `out` (`out[k]`
+    /// is sample k's stratum); left empty for the grid order, where sample k takes stratum k.
+    pub fn strata_order(&self, order: SampleOrder, x: u32, y: u32, limit: u32, out: &mut Vec<u32>) {
         match order {
             SampleOrder::Grid => out.clear(),
-            SampleOrder::Progressive => progressive_strata(self.seed, x, y, self.strata, out),
+            SampleOrder::Progressive => {
+                progressive_strata(self.seed, x, y, self.strata, limit, out)
+            }
         }
     }
 

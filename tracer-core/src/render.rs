@@ -262,7 +262,7 @@ impl RowShader<'_> {
         acc: &mut PixelSums,
     ) {
         let eye = &self.renderer.eye;
-        eye.strata_order(self.renderer.order, x, self.y, &mut self.order);
+        eye.strata_order(self.renderer.order, x, self.y, samples.end, &mut self.order);
         for sample in samples {
             let stratum = if self.order.is_empty() {
                 sample

@@ -106,8 +106,9 @@ pub enum SampleOrder {
     Progressive,
 }
 
-/// The progressive order of pixel (x, y)'s `cols × rows` strata: `out[k]` is the stratum
-/// (`cx + cy·cols`) of sample k.
+/// The progressive order of pixel (x, y)'s `cols × rows` strata, its first `limit` samples:
+/// `out[k]` is the stratum (`cx + cy·cols`) of sample k. Costs O(limit), not O(strata): a
+/// pass over the first samples of a large `spp_max` only orders what it renders.
 ///
 /// Strata are numbered along a Morton curve of the enclosing power-of-two grid whose leading
 /// bits are the coarsest cells; sample k takes the code `reverse(k) XOR mask`. A prefix of
@@ -115,8 +116,16 @@ pub enum SampleOrder {
 /// reversal), and the per-pixel mask moves where in each cell it lands, so neighbouring
 /// pixels do not share one pattern. Codes outside a grid that is not a power of two in some
 /// direction are skipped; its prefixes stay nearly as well spread.
-pub fn progressive_strata(seed: u64, x: u32, y: u32, (cols, rows): (u32, u32), out: &mut Vec<u32>) {
+pub fn progressive_strata(
+    seed: u64,
+    x: u32,
+    y: u32,
+    (cols, rows): (u32, u32),
+    limit: u32,
+    out: &mut Vec<u32>,
+) {
     out.clear();
+    let limit = limit.min(cols * rows) as usize;
     let (bx, by) = (
         cols.next_power_of_two().trailing_zeros(),
         rows.next_power_of_two().trailing_zeros(),
@@ -136,6 +145,9 @@ pub fn progressive_strata(seed: u64, x: u32, y: u32, (cols, rows): (u32, u32), o
         let (cx, cy) = morton_decode(code, bx, by);
         if cx < cols && cy < rows {
             out.push(cx + cy * cols);
+            if out.len() == limit {
+                break;
+            }
         }
     }
 }
@@ -260,14 +272,14 @@ mod tests {
         let mut order = Vec::new();
         for (spp, x) in [(16u32, 0u32), (64, 3), (40, 7), (7, 1), (1, 0), (32, 9)] {
             let grid = strata(spp);
-            progressive_strata(11, x, 5, grid, &mut order);
+            progressive_strata(11, x, 5, grid, spp, &mut order);
             let mut sorted = order.clone();
             sorted.sort();
             assert_eq!(sorted, (0..spp).collect::<Vec<_>>(), "spp {spp}");
         }
         // 64 strata (8×8): the first 4 samples land one in each quadrant, the first 16 one in
         // each 2×2 block.
-        progressive_strata(3, 10, 20, (8, 8), &mut order);
+        progressive_strata(3, 10, 20, (8, 8), 64, &mut order);
         let cell = |s: u32, size: u32| ((s % 8) / size, (s / 8) / size);
         let quads: std::collections::HashSet<_> = order[..4].iter().map(|&s| cell(s, 4)).collect();
         assert_eq!(quads.len(), 4);
@@ -276,9 +288,15 @@ mod tests {
         assert_eq!(blocks.len(), 16);
         // Pixels differ in their orders (the scramble), each reproducibly.
         let mut other = Vec::new();
-        progressive_strata(3, 11, 20, (8, 8), &mut other);
+        progressive_strata(3, 11, 20, (8, 8), 64, &mut other);
         assert_ne!(order, other);
-        progressive_strata(3, 10, 20, (8, 8), &mut other);
+        progressive_strata(3, 10, 20, (8, 8), 64, &mut other);
         assert_eq!(order, other);
+        // A prefix is the start of the whole order.
+        progressive_strata(3, 10, 20, (8, 8), 9, &mut other);
+        assert_eq!(other, order[..9]);
+        progressive_strata(5, 1, 2, (5, 8), 40, &mut order);
+        progressive_strata(5, 1, 2, (5, 8), 17, &mut other);
+        assert_eq!(other, order[..17]);
     }
 }
