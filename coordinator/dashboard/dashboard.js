@@ -195,8 +195,12 @@ function onJob(job, loading = false) {
   $('job-error').textContent = job.error || '';
   if (!before || before.state !== job.state) loadTiles(job.id);
   if (!before || before.tiles_done !== job.tiles_done || before.state !== job.state) {
-    refreshPreview();
+    // A progressive job's image changes once per pass, not per tile.
+    if (!job.spec.adaptive || !before || before.passes !== job.passes || before.state !== job.state) {
+      refreshPreview();
+    }
   }
+  if (!before || before.passes !== job.passes) refreshConvergence();
 }
 
 function createJobRow(id) {
@@ -256,6 +260,7 @@ function renderJob(job) {
   const percent = job.tiles_total ? Math.floor((100 * job.tiles_done) / job.tiles_total) : 0;
   cells.bar.style.width = percent + '%';
   cells.label.textContent = `${job.tiles_done}/${job.tiles_total} (${percent}%)`;
+  if (job.passes != null) cells.label.textContent += ` · pass ${job.passes}`;
   cells.cancel.hidden = !isActive(job);
   cells.retry.hidden = job.state !== 'failed';
   errorRow.hidden = !job.error;
@@ -352,7 +357,89 @@ function select(id) {
   }
   loadTiles(id);
   refreshPreview();
+  refreshConvergence();
   loadCamera(id);
+}
+
+// ---------------------------------------------------------------- convergence
+
+// A progressive job's mean spp, estimated error, sample map and error-against-time plot,
+// reloaded after every pass.
+async function refreshConvergence() {
+  const id = state.selected;
+  const job = id == null ? null : state.jobs.get(id);
+  const box = $('progressive');
+  box.hidden = !(job && job.spec.adaptive);
+  if (box.hidden) return;
+  const rules = job.spec.adaptive;
+  const error = job.error_estimate == null ? '–' : job.error_estimate.toFixed(4);
+  const spp = job.spp_mean == null ? '–' : job.spp_mean.toFixed(2);
+  $('progressive-status').textContent =
+    `passes ${job.passes} · mean spp ${spp} (${rules.spp_min}..${rules.spp_max}) · ` +
+    `estimated error ${error} (threshold ${rules.noise_threshold})`;
+  if (!job.passes) {
+    $('convergence-plot').replaceChildren();
+    $('sample-map').removeAttribute('src');
+    return;
+  }
+  try {
+    const conv = await (await api(`/jobs/${id}/convergence`)).json();
+    if (state.selected !== id) return;
+    plotConvergence(conv.passes);
+    const blob = await (await api(`/jobs/${id}/samples.png`)).blob();
+    if (state.selected !== id) return;
+    const img = $('sample-map');
+    const old = img.dataset.url;
+    img.dataset.url = URL.createObjectURL(blob);
+    img.src = img.dataset.url;
+    img.dataset.passes = job.passes;
+    if (old) URL.revokeObjectURL(old);
+  } catch (e) {
+    if (!(e instanceof Unauthorized)) $('job-error').textContent = 'convergence: ' + e.message;
+  }
+}
+
+// Estimated error (log scale) against wall time, one point per pass.
+function plotConvergence(passes) {
+  const svg = $('convergence-plot');
+  const ns = 'http://www.w3.org/2000/svg';
+  const node = (tag, attrs, text) => {
+    const n = document.createElementNS(ns, tag);
+    for (const [k, v] of Object.entries(attrs)) n.setAttribute(k, v);
+    if (text != null) n.textContent = text;
+    return n;
+  };
+  const points = passes.filter((p) => p.error > 0 && Number.isFinite(p.error));
+  const [w, h, left, bottom] = [320, 160, 44, 24];
+  const children = [
+    node('line', { x1: left, y1: h - bottom, x2: w - 4, y2: h - bottom, stroke: 'currentColor' }),
+    node('line', { x1: left, y1: 4, x2: left, y2: h - bottom, stroke: 'currentColor' }),
+    node('text', { x: w - 4, y: h - 6, 'text-anchor': 'end', 'font-size': 10 }, 'wall time (s)'),
+    node('text', { x: 2, y: 12, 'font-size': 10 }, 'error'),
+  ];
+  if (points.length) {
+    const tMax = Math.max(...points.map((p) => p.wall_s), 1e-3);
+    const logs = points.map((p) => Math.log10(p.error));
+    const [lo, hi] = [Math.min(...logs), Math.max(...logs)];
+    const span = Math.max(hi - lo, 1e-6);
+    const x = (t) => left + ((w - 4 - left) * t) / tMax;
+    const y = (l) => 4 + ((h - bottom - 4) * (hi - l)) / span;
+    const xy = points.map((p, i) => `${x(p.wall_s).toFixed(1)},${y(logs[i]).toFixed(1)}`);
+    children.push(node('polyline', { points: xy.join(' '), fill: 'none', stroke: 'currentColor' }));
+    for (const [i, p] of points.entries()) {
+      const [cx, cy] = xy[i].split(',');
+      const dot = node('circle', { cx, cy, r: 2.5, class: 'pass' });
+      dot.appendChild(node('title', {}, `pass ${p.pass}: ${p.wall_s.toFixed(2)} s, ` +
+        `mean spp ${p.spp_mean.toFixed(2)}, error ${p.error.toFixed(4)}`));
+      children.push(dot);
+    }
+    children.push(node('text', { x: left - 2, y: 12, 'text-anchor': 'end', 'font-size': 9 },
+      Math.pow(10, hi).toPrecision(2)));
+    children.push(node('text', { x: left - 2, y: h - bottom, 'text-anchor': 'end', 'font-size': 9 },
+      Math.pow(10, lo).toPrecision(2)));
+  }
+  svg.replaceChildren(...children);
+  svg.dataset.passes = passes.length;
 }
 
 async function loadTiles(id) {

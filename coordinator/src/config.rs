@@ -94,6 +94,14 @@ impl Limits {
                 s.width, s.height, self.max_pixels
             ));
         }
+        if let Some(a) = &spec.adaptive {
+            if a.spp_max > self.max_spp {
+                return Err(format!(
+                    "adaptive spp_max {} exceeds the limit of {} spp",
+                    a.spp_max, self.max_spp
+                ));
+            }
+        }
         if s.spp > self.max_spp {
             return Err(format!(
                 "spp {} exceeds the limit of {}",

@@ -422,6 +422,9 @@ async fn reap(farm: Arc<Farm>) {
         if let Err(e) = farm.expire_leases() {
             tracing::error!("expiring leases: {e}");
         }
+        if let Err(e) = farm.check_time_limits() {
+            tracing::error!("ending progressive jobs on their time limit: {e}");
+        }
     }
 }
 

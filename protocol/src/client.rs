@@ -211,6 +211,32 @@ impl Client {
         .await
     }
 
+    /// The running sums a pass lease continues (`tracer_core::adaptive::SumImage::to_bytes`
+    /// of the tile).
+    pub async fn lease_sums(&self, lease_id: u64) -> Result<Vec<u8>> {
+        self.bytes(&format!("/leases/{lease_id}/sums")).await
+    }
+
+    /// Posts a pass lease's new running sums.
+    pub async fn complete_sums(&self, lease_id: u64, sums: Vec<u8>) -> Result<Completion> {
+        Self::json(
+            self.request(Method::PUT, &format!("/leases/{lease_id}/sums"))
+                .header(header::CONTENT_TYPE, "application/octet-stream")
+                .body(sums),
+        )
+        .await
+    }
+
+    /// Every finished pass of a progressive job.
+    pub async fn convergence(&self, id: u64) -> Result<crate::Convergence> {
+        Self::json(self.request(Method::GET, &format!("/jobs/{id}/convergence"))).await
+    }
+
+    /// The sample-count map of a progressive job, as PNG.
+    pub async fn samples_png(&self, id: u64) -> Result<Vec<u8>> {
+        self.bytes(&format!("/jobs/{id}/samples.png")).await
+    }
+
     pub async fn fail(&self, lease_id: u64, report: &FailureReport) -> Result<JobInfo> {
         Self::json(
             self.request(Method::POST, &format!("/leases/{lease_id}/failure"))

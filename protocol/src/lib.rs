@@ -60,6 +60,75 @@ pub struct JobSpec {
     pub frames: Option<FrameRange>,
     /// Tiles are at most `tile_size`×`tile_size` pixels.
     pub tile_size: u32,
+    /// Render in passes until the stopping rules say the image is good enough (one frame
+    /// only). Left out of the JSON when absent, so other jobs serialise as before.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub adaptive: Option<AdaptiveSpec>,
+}
+
+/// The stopping rules of a progressive job (`"adaptive": {...}` in a [`JobSpec`]). The job
+/// renders in passes over the samples of `spp_max` (which replaces `render.spp`); each 8×8
+/// block of pixels stops once it has `spp_min` samples and its estimated relative error is at
+/// most `noise_threshold`, or when it reaches `spp_max`; the job ends when every block has
+/// stopped or `time_limit_s` has passed (with the image of the last finished pass).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AdaptiveSpec {
+    /// Relative error of a block's mean at which it stops; 0 never stops a block early.
+    pub noise_threshold: f64,
+    /// Samples every pixel gets (the first pass), at least 2: the error needs two halves.
+    pub spp_min: u32,
+    /// Samples no pixel goes beyond.
+    pub spp_max: u32,
+    /// Seconds after the first lease at which the job ends with its last finished pass
+    /// (the first pass always finishes).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time_limit_s: Option<f64>,
+}
+
+impl Default for AdaptiveSpec {
+    fn default() -> Self {
+        Self {
+            noise_threshold: 0.01,
+            spp_min: 4,
+            spp_max: 256,
+            time_limit_s: None,
+        }
+    }
+}
+
+/// The largest `spp_max` a progressive job may ask for.
+pub const MAX_ADAPTIVE_SPP: u32 = 1 << 16;
+
+impl AdaptiveSpec {
+    /// Rules no progressive render can follow.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.noise_threshold.is_finite() && self.noise_threshold >= 0.0) {
+            return Err(format!(
+                "noise_threshold {} must be a finite number >= 0",
+                self.noise_threshold
+            ));
+        }
+        if self.spp_min < 2 {
+            return Err(format!(
+                "spp_min {} must be at least 2 (the error estimate compares two halves)",
+                self.spp_min
+            ));
+        }
+        if self.spp_max < self.spp_min || self.spp_max > MAX_ADAPTIVE_SPP {
+            return Err(format!(
+                "spp_max {} must lie between spp_min {} and {MAX_ADAPTIVE_SPP}",
+                self.spp_max, self.spp_min
+            ));
+        }
+        if let Some(t) = self.time_limit_s {
+            if !(t.is_finite() && t > 0.0) {
+                return Err(format!("time_limit_s {t} must be a positive number"));
+            }
+        }
+        Ok(())
+    }
 }
 
 impl JobSpec {
@@ -79,6 +148,7 @@ impl Default for JobSpec {
             render: RenderSettings::default(),
             frames: None,
             tile_size: DEFAULT_TILE_SIZE,
+            adaptive: None,
         }
     }
 }
@@ -162,6 +232,40 @@ pub struct JobInfo {
     pub failures: Vec<TileFailure>,
     /// Unix milliseconds.
     pub created_ms: u64,
+    /// Mean samples per pixel of the image so far (the job's spp for a one-shot job once
+    /// it is done).
+    #[serde(default)]
+    pub spp_mean: Option<f64>,
+    /// Progressive jobs: passes finished so far.
+    #[serde(default)]
+    pub passes: Option<u32>,
+    /// Progressive jobs: the estimated relative error of the image after the last pass.
+    #[serde(default)]
+    pub error_estimate: Option<f64>,
+}
+
+/// One finished pass of a progressive job.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PassInfo {
+    /// Counted from 0.
+    pub pass: u32,
+    /// Seconds from the job's first lease to the end of the pass.
+    pub wall_s: f64,
+    /// Mean samples per pixel after the pass.
+    pub spp_mean: f64,
+    /// The image's estimated relative error after the pass.
+    pub error: f64,
+    /// 8×8 blocks still sampling after the pass.
+    pub active_blocks: u32,
+}
+
+/// `GET /jobs/{id}/convergence`: every finished pass, oldest first (empty for a one-shot job).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Convergence {
+    pub job_id: u64,
+    pub passes: Vec<PassInfo>,
 }
 
 /// A tile's state on a job's tile map.
@@ -320,6 +424,24 @@ pub struct Lease {
     pub expires_in_ms: u64,
     /// How often the worker should heartbeat (well inside `expires_in_ms`).
     pub heartbeat_ms: u64,
+    /// A pass of a progressive job: the worker continues the tile's running sums
+    /// (`GET /leases/{id}/sums`) and answers with `PUT /leases/{id}/sums` instead of pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pass: Option<PassLease>,
+}
+
+/// What one pass of a progressive job asks of a tile.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PassLease {
+    pub pass: u32,
+    /// Sample indices `samples_from..samples_to` in the progressive order over `settings.spp`
+    /// strata; the sums so far hold samples `0..samples_from`.
+    pub samples_from: u32,
+    pub samples_to: u32,
+    /// The 8×8 blocks of the image (`tracer_core::adaptive::block_of` indices) of this tile
+    /// that still sample; pixels of the others keep their sums.
+    pub active_blocks: Vec<u32>,
 }
 
 /// The answer to a heartbeat: the lease's new expiry.

@@ -25,6 +25,10 @@ pub const METRICS_TOKEN_SCHEME: &str = "metricsToken";
 #[derive(utoipa::OpenApi)]
 #[openapi(components(schemas(
     crate::JobSpec,
+    crate::AdaptiveSpec,
+    crate::PassInfo,
+    crate::Convergence,
+    crate::PassLease,
     crate::JobInfo,
     crate::JobState,
     crate::TileFailure,

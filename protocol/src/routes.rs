@@ -20,6 +20,8 @@ pub enum RouteId {
     JobBundle,
     JobTiles,
     JobCamera,
+    JobConvergence,
+    JobSamples,
     ResubmitJob,
     RegisterWorker,
     ListWorkers,
@@ -30,6 +32,8 @@ pub enum RouteId {
     HandBack,
     Heartbeat,
     Pixels,
+    LeaseSums,
+    PassSums,
     Failure,
     OpenApi,
     Healthz,
@@ -343,6 +347,31 @@ pub const ROUTES: &[Route] = &[
         ],
     ),
     api(
+        RouteId::JobConvergence,
+        "GET",
+        "/jobs/{id}/convergence",
+        "a progressive job's passes: wall time, mean spp, estimated error",
+        &[
+            ok(200, Body::Json("Convergence"), "every finished pass"),
+            NO_JOB,
+        ],
+    ),
+    api(
+        RouteId::JobSamples,
+        "GET",
+        "/jobs/{id}/samples.png",
+        "where a progressive job's samples went",
+        &[
+            ok(
+                200,
+                Body::Bytes("image/png"),
+                "each pixel's spp over spp_max, as grey",
+            ),
+            NO_JOB,
+            err(409, "the job is not progressive, or has no finished pass"),
+        ],
+    ),
+    api(
         RouteId::ResubmitJob,
         "POST",
         "/jobs/{id}/resubmit",
@@ -450,6 +479,33 @@ pub const ROUTES: &[Route] = &[
                 "the wrong size, or a non-finite value (the tile is queued again)",
             ),
             STALE,
+            STORAGE,
+        ],
+    )
+    .takes(Body::Bytes("application/octet-stream"), true),
+    api(
+        RouteId::LeaseSums,
+        "GET",
+        "/leases/{id}/sums",
+        "a pass lease's running sums so far",
+        &[
+            ok(
+                200,
+                Body::Bytes("application/octet-stream"),
+                "f64 little-endian, 5 per pixel, row-major from the tile's top row",
+            ),
+            err(409, "the lease is stale, unknown or not a pass"),
+        ],
+    ),
+    api(
+        RouteId::PassSums,
+        "PUT",
+        "/leases/{id}/sums",
+        "complete a pass of a tile",
+        &[
+            ok(200, Body::Json("Completion"), "the pass's progress"),
+            err(400, "the wrong size, or a non-finite value"),
+            err(409, "the lease is stale, unknown or not a pass"),
             STORAGE,
         ],
     )

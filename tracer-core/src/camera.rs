@@ -6,7 +6,7 @@
 use glam::{DQuat, DVec3};
 
 use crate::geometry::Ray;
-use crate::sampler::{concentric_disk, strata, Rng, Stream};
+use crate::sampler::{concentric_disk, progressive_strata, strata, Rng, SampleOrder, Stream};
 use crate::scene::{CameraDesc, Scene};
 use crate::settings::{CameraOverride, RenderSettings};
 
@@ -218,9 +218,29 @@ impl<'a> EyeRays<'a> {
         Some((self.camera.position, planes))
     }
 
-    /// Sample `sample` of pixel (x, y), y counted from the image's **bottom** row.
+
+    /// The strata of pixel (x, y)'s first `limit` samples under `order` into `out` (`out[k]`
+    /// is sample k's stratum); left empty for the grid order, where sample k takes stratum k.
+    pub fn strata_order(&self, order: SampleOrder, x: u32, y: u32, limit: u32, out: &mut Vec<u32>) {
+        match order {
+            SampleOrder::Grid => out.clear(),
+            SampleOrder::Progressive => {
+                progressive_strata(self.seed, x, y, self.strata, limit, out)
+            }
+        }
+    }
+
+    /// Sample `sample` of pixel (x, y), y counted from the image's **bottom** row, in the grid
+    /// order.
     #[inline]
     pub fn sample(&self, x: u32, y: u32, sample: u32) -> EyeSample {
+        self.sample_in(x, y, sample, sample)
+    }
+
+    /// Sample `sample` of pixel (x, y), jittered within stratum `stratum` (see
+    /// [`EyeRays::strata_order`]). Its random numbers depend on the sample index alone.
+    #[inline]
+    pub fn sample_in(&self, x: u32, y: u32, sample: u32, stratum: u32) -> EyeSample {
         let seed = self.seed;
         let mut rng = Rng::for_sample(seed, x, y, sample);
         // One sample goes through the pixel centre; more are jittered within strata.
@@ -228,7 +248,7 @@ impl<'a> EyeRays<'a> {
             (0.5, 0.5)
         } else {
             let (cols, rows) = self.strata;
-            let (cx, cy) = (sample % cols, sample / cols);
+            let (cx, cy) = (stratum % cols, stratum / cols);
             (
                 (cx as f64 + rng.next_f64()) / cols as f64,
                 (cy as f64 + rng.next_f64()) / rows as f64,

@@ -6,7 +6,8 @@
 //!   [`texture`] (textures, their filter, the environment map): the leaves;
 //! - [`settings`]: the plain data of a render (settings, tiles, frame ranges);
 //! - [`film`]: f32 images, tiles assembled into frames, PNG encoding; [`metrics`],
-//!   [`convergence`] and (feature `report`) `report` measure images;
+//!   [`convergence`] and (feature `report`) `report` measure images; [`adaptive`]: the running
+//!   sums and per-block decisions of progressive renders;
 //! - [`accel`]: the BVH; [`world`]: objects under a top-level BVH, closest-hit, any-hit and
 //!   the geometry at a hit — material indices only;
 //! - [`shade`]: materials, lights, optics, the medium stack, the caustic map's gather and
@@ -15,10 +16,12 @@
 //!   [`Scene`] built from only the assets the description references;
 //! - [`photon`]: the opt-in caustic photon map, traced with shade's optics and lights;
 //! - [`camera`]: where each pixel sample's eye ray is born;
-//! - [`render`]: tiles and whole images in parallel; (feature `bench`) `bench`;
+//! - [`render`]: tiles and whole images in parallel, and the sample ranges of progressive
+//!   passes whose decisions [`adaptive`] makes; (feature `bench`) `bench`;
 //!   (feature `cli-args`) `cli_args`, the render flags both command lines share.
 
 pub mod accel;
+pub mod adaptive;
 #[cfg(feature = "bench")]
 pub mod bench;
 pub mod camera;
@@ -41,6 +44,7 @@ pub mod world;
 
 pub use film::{Image, ImageFormat};
 pub use render::{RenderError, Renderer};
+pub use sampler::SampleOrder;
 pub use scene::{AssetSource, FsAssets, LoadLimits, MemoryAssets, Scene, SceneError};
 pub use settings::{
     CameraOverride, CausticsSettings, FrameRange, RenderSettings, SettingsError, TextureFilter,

@@ -2,18 +2,22 @@
 //! linear f32 tiles. A pixel's value depends only on (scene, settings, pixel), so any tiling
 //! gives the same bytes.
 
+use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::adaptive::{in_second_half, luminance, SUMS};
 use crate::camera::{Camera, EyeRays};
 use crate::film::Image;
 use crate::photon::{caustic_map, CausticMap};
+use crate::sampler::SampleOrder;
 use crate::scene::Scene;
 use crate::settings::{RenderSettings, SettingsError, TileRect};
 use crate::shade::Tracer;
+use crate::world::World;
 
 /// Largest recursion depth accepted; the ray budget bounds the work in any case.
 pub const MAX_DEPTH_LIMIT: u32 = 64;
@@ -37,6 +41,16 @@ pub struct Renderer<'a> {
     radiance_rays: AtomicU64,
     shadow_rays: AtomicU64,
     caustics: Option<Arc<CausticMap>>,
+    order: SampleOrder,
+}
+
+/// One pixel's running sums: what a one-shot render accumulates, plus (when `ESTIMATE`) the
+/// half-buffer luminance sums of [`crate::adaptive`].
+#[derive(Clone, Copy, Default)]
+struct PixelSums {
+    rgb: DVec3,
+    lum: f64,
+    lum_odd: f64,
 }
 
 impl<'a> Renderer<'a> {
@@ -58,7 +72,14 @@ impl<'a> Renderer<'a> {
             radiance_rays: AtomicU64::new(0),
             shadow_rays: AtomicU64::new(0),
             caustics: caustic_map(scene, settings),
+            order: SampleOrder::Grid,
         })
+    }
+
+    /// The same renderer visiting each pixel's strata in `order` (progressive renders use
+    /// [`SampleOrder::Progressive`] over the strata of their largest sample count).
+    pub fn with_sample_order(self, order: SampleOrder) -> Self {
+        Self { order, ..self }
     }
 
     pub fn settings(&self) -> &RenderSettings {
@@ -122,48 +143,170 @@ impl<'a> Renderer<'a> {
         image
     }
 
+    /// Continues the running sums of `rect`'s pixels with samples `samples` (indices into the
+    /// settings' `spp`, in the renderer's sample order), for the pixels `active(x, y)` accepts
+    /// (x, y in image pixels from the top); the others keep their sums. `sums` holds
+    /// [`SUMS`] f64 per pixel of the tile, row-major from its top row ([`crate::adaptive`]):
+    /// zeros before the first pass. A pixel's sum after samples 0..n is bit-identical to what
+    /// a one-shot render of n samples divides. Returns false if `cancel` was set first.
+    pub fn render_tile_samples(
+        &self,
+        rect: TileRect,
+        samples: Range<u32>,
+        active: &(dyn Fn(u32, u32) -> bool + Sync),
+        sums: &mut [f64],
+        cancel: &AtomicBool,
+    ) -> bool {
+        assert!(
+            rect.x + rect.width <= self.settings.width
+                && rect.y + rect.height <= self.settings.height,
+            "tile {rect:?} lies outside the {}x{} image",
+            self.settings.width,
+            self.settings.height
+        );
+        assert!(
+            samples.end <= self.settings.spp,
+            "samples {samples:?} go beyond spp {}",
+            self.settings.spp
+        );
+        assert_eq!(sums.len(), rect.pixel_count() * SUMS, "tile sums size");
+        if rect.width == 0 {
+            return true;
+        }
+        sums.par_chunks_mut(SUMS * rect.width as usize)
+            .enumerate()
+            .for_each(|(row, out)| {
+                if cancel.load(Ordering::Relaxed) {
+                    return;
+                }
+                let row = rect.y + row as u32;
+                self.pixels(rect.x, row, out.len() / SUMS, |i, x, shade| {
+                    let px = &mut out[i * SUMS..(i + 1) * SUMS];
+                    if !active(x, row) {
+                        return;
+                    }
+                    let mut acc = PixelSums {
+                        rgb: DVec3::new(px[0], px[1], px[2]),
+                        lum: px[3],
+                        lum_odd: px[4],
+                    };
+                    shade.accumulate::<true>(x, samples.clone(), &mut acc);
+                    px.copy_from_slice(&[acc.rgb.x, acc.rgb.y, acc.rgb.z, acc.lum, acc.lum_odd]);
+                });
+            });
+        !cancel.load(Ordering::Relaxed)
+    }
+
     /// Renders the pixels of image row `row` (counted from the top) starting at column `x0`
     /// into `out` (3 floats per pixel).
     fn render_row(&self, x0: u32, row: u32, out: &mut [f32]) {
+        let spp = self.settings.spp;
+        self.pixels(x0, row, out.len() / 3, |i, x, shade| {
+            let mut acc = PixelSums::default();
+            shade.accumulate::<false>(x, 0..spp, &mut acc);
+            // The average before any clamping (conventions §3.2).
+            let mean = acc.rgb / spp as f64;
+            out[i * 3..i * 3 + 3].copy_from_slice(&[mean.x as f32, mean.y as f32, mean.z as f32]);
+        });
+    }
+
+    /// Calls `pixel(i, x, shader)` for the `count` pixels of image row `row` (from the top)
+    /// starting at column `x0`, with a shader for that row; counts its rays.
+    fn pixels(
+        &self,
+        x0: u32,
+        row: u32,
+        count: usize,
+        mut pixel: impl FnMut(usize, u32, &mut RowShader),
+    ) {
         let stage = self
             .scene
             .stage(self.settings.texture_filter, self.caustics.as_deref());
-        let mut tracer = Tracer::new(stage, self.settings.max_depth);
-        // The course's pixel grid has y = 0 at the bottom.
-        let y = self.settings.height - 1 - row;
-        let (mut radiance_rays, mut shadow_rays) = (0u64, 0u64);
-        // A pixel's eye rays share an origin and stay within its frustum: the top-level slots
-        // the frustum meets are found once per pixel, and each eye ray tests just those
-        // instead of traversing (kept for the row, so no allocation per pixel).
-        let mut slots = Vec::new();
-        for (i, px) in out.chunks_exact_mut(3).enumerate() {
-            let x = x0 + i as u32;
-            let mut sum = DVec3::ZERO;
-            let frustum = self.eye.pixel_frustum(x, y).map(|(origin, planes)| {
-                stage.world.frustum_slots(origin, &planes, &mut slots);
-                &slots[..]
-            });
-            for sample in 0..self.settings.spp {
-                let mut eye = self.eye.sample(x, y, sample);
-                let (color, counts) = tracer.sample(
-                    &eye.ray,
-                    eye.near,
-                    eye.far,
-                    &mut eye.rng,
-                    eye.gloss,
-                    frustum,
-                );
-                radiance_rays += counts.radiance as u64;
-                shadow_rays += counts.shadow as u64;
-                sum += sanitize(color);
-            }
-            // The average before any clamping (conventions §3.2).
-            let mean = sum / self.settings.spp as f64;
-            px.copy_from_slice(&[mean.x as f32, mean.y as f32, mean.z as f32]);
+        let mut shade = RowShader {
+            renderer: self,
+            world: stage.world,
+            tracer: Tracer::new(stage, self.settings.max_depth),
+            // The course's pixel grid has y = 0 at the bottom.
+            y: self.settings.height - 1 - row,
+            order: Vec::new(),
+            slots: Vec::new(),
+            radiance_rays: 0,
+            shadow_rays: 0,
+        };
+        for i in 0..count {
+            pixel(i, x0 + i as u32, &mut shade);
         }
         self.radiance_rays
-            .fetch_add(radiance_rays, Ordering::Relaxed);
-        self.shadow_rays.fetch_add(shadow_rays, Ordering::Relaxed);
+            .fetch_add(shade.radiance_rays, Ordering::Relaxed);
+        self.shadow_rays
+            .fetch_add(shade.shadow_rays, Ordering::Relaxed);
+    }
+}
+
+/// What tracing the samples of one image row needs, reused across its pixels.
+struct RowShader<'r> {
+    renderer: &'r Renderer<'r>,
+    tracer: Tracer<'r>,
+    /// The row, counted from the bottom.
+    y: u32,
+    world: &'r World,
+    /// The current pixel's stratum order (empty: the grid order).
+    order: Vec<u32>,
+    /// The top-level slots the current pixel's eye-ray frustum meets (see
+    /// [`World::frustum_slots`]); kept for the row, so no allocation per pixel.
+    slots: Vec<u32>,
+    radiance_rays: u64,
+    shadow_rays: u64,
+}
+
+impl RowShader<'_> {
+    /// Adds samples `samples` of pixel `x` of this row to `acc`, in sample order.
+    #[inline]
+    fn accumulate<const ESTIMATE: bool>(
+        &mut self,
+        x: u32,
+        samples: Range<u32>,
+        acc: &mut PixelSums,
+    ) {
+        let eye = &self.renderer.eye;
+        eye.strata_order(self.renderer.order, x, self.y, samples.end, &mut self.order);
+        // A pixel's eye rays share an origin and stay within its frustum, whatever their
+        // strata: the top-level slots the frustum meets are found once per pixel, and each eye
+        // ray tests just those instead of traversing.
+        let frustum = match eye.pixel_frustum(x, self.y) {
+            Some((origin, planes)) => {
+                self.world.frustum_slots(origin, &planes, &mut self.slots);
+                Some(&self.slots[..])
+            }
+            None => None,
+        };
+        for sample in samples {
+            let stratum = if self.order.is_empty() {
+                sample
+            } else {
+                self.order[sample as usize]
+            };
+            let mut ray = eye.sample_in(x, self.y, sample, stratum);
+            let (color, counts) = self.tracer.sample(
+                &ray.ray,
+                ray.near,
+                ray.far,
+                &mut ray.rng,
+                ray.gloss,
+                frustum,
+            );
+            self.radiance_rays += counts.radiance as u64;
+            self.shadow_rays += counts.shadow as u64;
+            let color = sanitize(color);
+            acc.rgb += color;
+            if ESTIMATE {
+                let lum = luminance(color.x, color.y, color.z);
+                acc.lum += lum;
+                if in_second_half(sample) {
+                    acc.lum_odd += lum;
+                }
+            }
+        }
     }
 }
 

@@ -139,6 +139,92 @@ pub fn strata(spp: u32) -> (u32, u32) {
     (cols, spp / cols)
 }
 
+/// The order in which a pixel's samples visit its `cols × rows` strata.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum SampleOrder {
+    /// Sample k takes stratum k, row by row: the one-shot order every render has used.
+    #[default]
+    Grid,
+    /// Every prefix of the samples is spread over the whole pixel, so a progressive render's
+    /// early passes (and the error estimate made from them) see all of it, not its top rows.
+    Progressive,
+}
+
+/// The progressive order of pixel (x, y)'s `cols × rows` strata, its first `limit` samples:
+/// `out[k]` is the stratum (`cx + cy·cols`) of sample k. Costs O(limit), not O(strata): a
+/// pass over the first samples of a large `spp_max` only orders what it renders.
+///
+/// Strata are numbered along a Morton curve of the enclosing power-of-two grid whose leading
+/// bits are the coarsest cells; sample k takes the code `reverse(k) XOR mask`. A prefix of
+/// 2^j samples then puts exactly one sample in each of the 2^j coarsest cells (the bit
+/// reversal), and the per-pixel mask moves where in each cell it lands, so neighbouring
+/// pixels do not share one pattern. Codes outside a grid that is not a power of two in some
+/// direction are skipped; its prefixes stay nearly as well spread.
+pub fn progressive_strata(
+    seed: u64,
+    x: u32,
+    y: u32,
+    (cols, rows): (u32, u32),
+    limit: u32,
+    out: &mut Vec<u32>,
+) {
+    out.clear();
+    let limit = limit.min(cols * rows) as usize;
+    let (bx, by) = (
+        cols.next_power_of_two().trailing_zeros(),
+        rows.next_power_of_two().trailing_zeros(),
+    );
+    let bits = bx + by;
+    let mask = if bits == 0 {
+        0
+    } else {
+        mix(mix(seed ^ 0x2545f4914f6cdd1d) ^ (((y as u64) << 32) | x as u64)) & ((1u64 << bits) - 1)
+    };
+    for k in 0..1u64 << bits {
+        let code = if bits == 0 {
+            0
+        } else {
+            (k.reverse_bits() >> (64 - bits)) ^ mask
+        };
+        let (cx, cy) = morton_decode(code, bx, by);
+        if cx < cols && cy < rows {
+            out.push(cx + cy * cols);
+            if out.len() == limit {
+                break;
+            }
+        }
+    }
+}
+
+/// Splits a Morton code of a `2^bx × 2^by` grid whose most significant bits are the coarsest
+/// (x and y bits alternate from the top while both last, then the longer one's follow).
+fn morton_decode(code: u64, bx: u32, by: u32) -> (u32, u32) {
+    let (mut cx, mut cy) = (0u32, 0u32);
+    let (mut rx, mut ry) = (bx, by);
+    let mut bit = bx + by;
+    let mut take_x = true;
+    while bit > 0 {
+        bit -= 1;
+        let v = ((code >> bit) & 1) as u32;
+        let to_x = if rx == 0 {
+            false
+        } else if ry == 0 {
+            true
+        } else {
+            take_x
+        };
+        if to_x {
+            rx -= 1;
+            cx |= v << rx;
+        } else {
+            ry -= 1;
+            cy |= v << ry;
+        }
+        take_x = !take_x;
+    }
+    (cx, cy)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -240,5 +326,38 @@ mod tests {
         assert_eq!(strata(16), (4, 4));
         assert_eq!(strata(40), (5, 8));
         assert_eq!(strata(7), (1, 7));
+    }
+
+    #[test]
+    fn progressive_order_is_a_permutation_whose_prefixes_cover_the_pixel() {
+        let mut order = Vec::new();
+        for (spp, x) in [(16u32, 0u32), (64, 3), (40, 7), (7, 1), (1, 0), (32, 9)] {
+            let grid = strata(spp);
+            progressive_strata(11, x, 5, grid, spp, &mut order);
+            let mut sorted = order.clone();
+            sorted.sort();
+            assert_eq!(sorted, (0..spp).collect::<Vec<_>>(), "spp {spp}");
+        }
+        // 64 strata (8×8): the first 4 samples land one in each quadrant, the first 16 one in
+        // each 2×2 block.
+        progressive_strata(3, 10, 20, (8, 8), 64, &mut order);
+        let cell = |s: u32, size: u32| ((s % 8) / size, (s / 8) / size);
+        let quads: std::collections::HashSet<_> = order[..4].iter().map(|&s| cell(s, 4)).collect();
+        assert_eq!(quads.len(), 4);
+        let blocks: std::collections::HashSet<_> =
+            order[..16].iter().map(|&s| cell(s, 2)).collect();
+        assert_eq!(blocks.len(), 16);
+        // Pixels differ in their orders (the scramble), each reproducibly.
+        let mut other = Vec::new();
+        progressive_strata(3, 11, 20, (8, 8), 64, &mut other);
+        assert_ne!(order, other);
+        progressive_strata(3, 10, 20, (8, 8), 64, &mut other);
+        assert_eq!(order, other);
+        // A prefix is the start of the whole order.
+        progressive_strata(3, 10, 20, (8, 8), 9, &mut other);
+        assert_eq!(other, order[..9]);
+        progressive_strata(5, 1, 2, (5, 8), 40, &mut order);
+        progressive_strata(5, 1, 2, (5, 8), 17, &mut other);
+        assert_eq!(other, order[..17]);
     }
 }

@@ -6,11 +6,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use tokio::sync::watch;
-use tracer_core::{Image, Renderer};
 
+use crate::pass;
 use crate::scenes::{LoadError, SceneCache};
 use protocol::client::{Client, ClientError};
-use protocol::{pixels_to_bytes, FailureReport, Lease, LeaseRequest};
+use protocol::{FailureReport, Lease, LeaseRequest};
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
@@ -233,20 +233,32 @@ impl Worker {
             }
         };
 
+        let begin = match pass::start(&self.client, &lease).await {
+            Ok(begin) => begin,
+            Err(ClientError::Stale(why)) => {
+                stats.dropped += 1;
+                tracing::info!("{tag}: dropped before rendering: {why}");
+                return;
+            }
+            Err(e) => {
+                // Asking for work again answers this same lease, so nothing is lost.
+                tracing::warn!("{tag}: fetching the pass's sums failed: {e}");
+                tokio::select! {
+                    _ = tokio::time::sleep(backoff.next_delay()) => {}
+                    _ = shutdown.wait() => {}
+                }
+                if shutdown.is_set() {
+                    self.hand_back(&lease, &tag, stats).await;
+                }
+                return;
+            }
+        };
         let start = Instant::now();
         let cancel = Arc::new(AtomicBool::new(false));
         let render = {
-            let (pool, cancel, settings, rect) = (
-                self.pool.clone(),
-                cancel.clone(),
-                lease.settings.clone(),
-                lease.rect,
-            );
+            let (pool, cancel, lease) = (self.pool.clone(), cancel.clone(), lease.clone());
             tokio::task::spawn_blocking(move || {
-                pool.install(|| -> Result<Option<Image>, String> {
-                    let renderer = Renderer::new(&scene, &settings).map_err(|e| e.to_string())?;
-                    Ok(renderer.render_tile(rect, &cancel))
-                })
+                pool.install(|| pass::render(&scene, &lease, begin, &cancel))
             })
         };
         tokio::pin!(render);
@@ -275,8 +287,8 @@ impl Worker {
             }
         };
         let seconds = start.elapsed().as_secs_f64();
-        let image = match outcome {
-            Ok(Ok(Some(image))) => image,
+        let output = match outcome {
+            Ok(Ok(Some(output))) => output,
             Ok(Ok(None)) => {
                 match stop {
                     Some(Stop::Stale(why)) => {
@@ -297,12 +309,11 @@ impl Worker {
                 return;
             }
         };
-        let bytes = pixels_to_bytes(&image.pixels);
         // Retry through network trouble: the pixels are worth keeping, and a restarted
         // coordinator honours leases granted before it went down.
         let mut retry = Backoff::new(Duration::from_millis(100), self.config.max_backoff);
         loop {
-            match self.client.complete(lease.lease_id, bytes.clone()).await {
+            match pass::deliver(&self.client, &lease, &output).await {
                 Ok(done) => {
                     stats.rendered += 1;
                     tracing::info!(

@@ -398,6 +398,23 @@ pub async fn image(
         .into_response())
 }
 
+/// A progressive job's finished passes.
+pub async fn convergence(
+    State(app): AppState,
+    Path(id): Path<String>,
+) -> ApiResult<Json<protocol::Convergence>> {
+    let id = parse_id("job", &id)?;
+    Ok(Json(app.farm.convergence(id)?))
+}
+
+/// Where a progressive job's samples went, as a grey PNG.
+pub async fn samples(State(app): AppState, Path(id): Path<String>) -> ApiResult<Response> {
+    let id = parse_id("job", &id)?;
+    let farm = app.farm.clone();
+    let png = blocking(move || Ok(farm.samples_png(id)?)).await?;
+    Ok(([(header::CONTENT_TYPE, "image/png")], png).into_response())
+}
+
 /// Every frame of a finished job as a tar of numbered PNGs (`<name>_0003.png`).
 pub async fn frames_tar(State(app): AppState, Path(id): Path<String>) -> ApiResult<Response> {
     let id = parse_id("job", &id)?;

@@ -161,6 +161,33 @@ pub async fn complete(
     }
 }
 
+/// A pass lease's running sums so far (f64 little-endian).
+pub async fn sums(State(app): AppState, Path(id): Path<String>) -> ApiResult<Response> {
+    let id = parse_id("lease", &id)?;
+    let bytes = counted(&app, app.farm.lease_sums(id))?;
+    Ok((
+        [(axum::http::header::CONTENT_TYPE, "application/octet-stream")],
+        bytes,
+    )
+        .into_response())
+}
+
+/// A pass lease's new sums: the tile's part of the pass is done.
+pub async fn complete_sums(
+    State(app): AppState,
+    Path(id): Path<String>,
+    body: Bytes,
+) -> ApiResult<Json<Completion>> {
+    let id = parse_id("lease", &id)?;
+    let farm = app.farm.clone();
+    let done = counted(
+        &app,
+        blocking(move || Ok(farm.complete_sums(id, &body))).await?,
+    )?;
+    app.farm.durable(app.farm.written()).await?;
+    Ok(Json(done))
+}
+
 pub async fn fail(
     State(app): AppState,
     Path(id): Path<String>,

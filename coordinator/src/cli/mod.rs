@@ -66,6 +66,50 @@ pub struct SettingsArgs {
     /// A name for job listings [default: the scene's file name].
     #[arg(long)]
     pub name: Option<String>,
+    #[command(flatten)]
+    pub adaptive: AdaptiveArgs,
+}
+
+/// Progressive rendering: any of these flags renders in passes until the image is good enough
+/// (`--spp` is then ignored: `--spp-max` bounds the samples).
+#[derive(Args, Debug, Clone, Default)]
+pub struct AdaptiveArgs {
+    /// Stop sampling an 8x8 block once its estimated relative error is at most this (0: only
+    /// spp-max stops it) [default: 0.01 when progressive].
+    #[arg(long, value_name = "X")]
+    pub noise_threshold: Option<f64>,
+    /// Samples every pixel gets, at least 2 [default: 4 when progressive].
+    #[arg(long, value_name = "N")]
+    pub spp_min: Option<u32>,
+    /// Samples no pixel goes beyond [default: 256 when progressive].
+    #[arg(long, value_name = "N")]
+    pub spp_max: Option<u32>,
+    /// End with the last finished pass after this many seconds of rendering.
+    #[arg(long, value_name = "SECONDS")]
+    pub time_limit: Option<f64>,
+}
+
+impl AdaptiveArgs {
+    /// The stopping rules the flags ask for; None when no flag is given (a one-shot job).
+    pub fn to_spec(&self) -> Result<Option<protocol::AdaptiveSpec>, Failure> {
+        if self.noise_threshold.is_none()
+            && self.spp_min.is_none()
+            && self.spp_max.is_none()
+            && self.time_limit.is_none()
+        {
+            return Ok(None);
+        }
+        let defaults = protocol::AdaptiveSpec::default();
+        let spp_min = self.spp_min.unwrap_or(defaults.spp_min);
+        let spec = protocol::AdaptiveSpec {
+            noise_threshold: self.noise_threshold.unwrap_or(defaults.noise_threshold),
+            spp_min,
+            spp_max: self.spp_max.unwrap_or(defaults.spp_max.max(spp_min)),
+            time_limit_s: self.time_limit,
+        };
+        spec.validate().map_err(Failure::usage)?;
+        Ok(Some(spec))
+    }
 }
 
 impl SettingsArgs {
@@ -78,6 +122,7 @@ impl SettingsArgs {
             render,
             frames: self.render.frames,
             tile_size: self.tile_size,
+            adaptive: self.adaptive.to_spec()?,
         })
     }
 }
@@ -279,6 +324,7 @@ mod tests {
             render: RenderSettings::default(),
             frames: None,
             tile_size: DEFAULT_TILE_SIZE,
+            adaptive: None,
         };
         let failure = collect_submission(Path::new("nosuch.scene"), spec).unwrap_err();
         assert_eq!(failure.code, exit::SCENE);

@@ -82,13 +82,13 @@ async fn submit_and_wait(
     let client = farm.client();
     let (workers, threads) = farm.size();
     let job = client.submit(submission).await.map_err(describe)?;
+    let spp = match &job.spec.adaptive {
+        Some(a) => format!("{}..{} spp progressive", a.spp_min, a.spp_max),
+        None => format!("{} spp", job.spec.render.spp),
+    };
     eprintln!(
-        "rendering {} at {}x{}, {} spp: {} tiles on {workers} worker(s), {threads} thread(s)",
-        job.scene_file,
-        job.spec.render.width,
-        job.spec.render.height,
-        job.spec.render.spp,
-        job.tiles_total
+        "rendering {} at {}x{}, {spp}: {} tiles on {workers} worker(s), {threads} thread(s)",
+        job.scene_file, job.spec.render.width, job.spec.render.height, job.tiles_total
     );
     let finished = tokio::select! {
         done = wait_for(client, job.id, Duration::from_millis(20), quiet) => {
@@ -103,9 +103,10 @@ async fn submit_and_wait(
         JobState::Done => {
             let written = super::download(client, &finished, output).await?;
             eprintln!(
-                "wrote {} in {:.2}s",
+                "wrote {} in {:.2}s: {}",
                 super::describe_written(&written),
-                start.elapsed().as_secs_f64()
+                start.elapsed().as_secs_f64(),
+                describe_samples(&finished)
             );
             Ok(())
         }
@@ -114,5 +115,18 @@ async fn submit_and_wait(
             finished.error.unwrap_or_default()
         ))),
         other => Err(Failure::failed(format!("the job ended {}", other.as_str()))),
+    }
+}
+
+/// The final line's account of the samples: mean spp, and for a progressive job its passes
+/// and estimated error.
+fn describe_samples(job: &protocol::JobInfo) -> String {
+    let spp = job.spp_mean.unwrap_or(job.spec.render.spp as f64);
+    match (job.passes, job.error_estimate) {
+        (Some(passes), Some(error)) => {
+            format!("mean spp {spp:.2}, {passes} passes, estimated error {error:.4}")
+        }
+        (Some(passes), None) => format!("mean spp {spp:.2}, {passes} passes"),
+        _ => format!("mean spp {spp:.2}"),
     }
 }

@@ -151,6 +151,7 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
                     },
                     frames: None,
                     tile_size: args.tile_size,
+                    adaptive: None,
                 };
                 match render_through(&farm, &args.scene, spec).await {
                     Ok(timed) => out.push((spp, timed)),

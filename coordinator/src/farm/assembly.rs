@@ -43,6 +43,13 @@ impl Farm {
         }
     }
 
+    /// Assembles on this thread (a pass end already runs on its own).
+    pub(super) fn assemble_now(&self, job_id: u64) {
+        if let Err(e) = self.assemble(job_id) {
+            tracing::error!("job {job_id}: assembling the image failed: {e}");
+        }
+    }
+
     /// Waits for every assembly started so far (tests, and a clean shutdown).
     pub fn wait_for_assemblies(&self) {
         let handles: Vec<_> =
@@ -92,6 +99,11 @@ impl Farm {
     }
 
     fn write_image(&self, job_id: u64) -> Result<()> {
+        // A progressive job's image is its last finished pass.
+        if let Some(image) = self.progressive_image(job_id)? {
+            self.files.put_image(job_id, &image.to_png(), &image)?;
+            return Ok(());
+        }
         let (width, height, grid, frames) = {
             let state = self.lock();
             let job = state.job(job_id)?;
@@ -192,6 +204,11 @@ impl Farm {
                 stored,
             )
         };
+        if state != JobState::Done {
+            if let Some(image) = self.progressive_image(job_id)? {
+                return Ok(image.encode(format));
+            }
+        }
         if state == JobState::Done {
             if format == ImageFormat::Png {
                 let png = match stored {

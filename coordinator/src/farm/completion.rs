@@ -16,7 +16,14 @@ impl Farm {
         let (job_id, tile, rect, tile_size) = {
             let state = self.lock();
             let lease = state.live(lease_id)?;
-            let grid = state.job(lease.job_id)?.grid;
+            let job = state.job(lease.job_id)?;
+            if job.progress.is_some() {
+                return Err(FarmError::BadRequest(ApiError::new(format!(
+                    "lease {lease_id} is a pass of a progressive job: PUT its sums to \
+                     /api/v1/leases/{lease_id}/sums"
+                ))));
+            }
+            let grid = job.grid;
             (
                 lease.job_id,
                 lease.tile,

@@ -3,6 +3,7 @@
 
 use protocol::{BundleFile, JobInfo, JobSpec, JobState, TileFailure, TileInfo, TileState};
 
+use super::progressive::Progress;
 use super::tiles::{TileBook, TileGrid};
 
 #[derive(Debug)]
@@ -24,8 +25,11 @@ pub struct Job {
     /// Sum and count of lease-to-completion times, for straggler detection.
     pub tile_ms_total: u64,
     pub tiles_timed: u64,
-    /// Every tile is done and the image is being written.
+    /// Every tile is done and the image is being written (or, for a progressive job, the
+    /// pass is ending).
     pub assembling: bool,
+    /// A progressive job's passes.
+    pub progress: Option<Box<Progress>>,
 }
 
 impl Job {
@@ -43,6 +47,8 @@ impl Job {
             .started_ms
             .map(|s| self.finished_ms.unwrap_or(now).saturating_sub(s));
         let eta_s = match elapsed_ms {
+            // A pass's tiles say nothing about how many passes remain.
+            _ if self.progress.is_some() => None,
             Some(ms) if self.is_active() && done > 0 => {
                 let per_tile = ms as f64 / 1000.0 / done as f64;
                 Some(per_tile * (self.total() - done) as f64)
@@ -63,6 +69,17 @@ impl Job {
             error: self.error.clone(),
             failures: self.failures.clone(),
             created_ms: self.created_ms,
+            spp_mean: Some(match &self.progress {
+                Some(p) => p.passes.last().map_or(0.0, |last| last.spp_mean),
+                None => self.spec.render.spp as f64,
+            }),
+            passes: self.progress.as_ref().map(|p| p.pass()),
+            error_estimate: self
+                .progress
+                .as_ref()
+                .and_then(|p| p.passes.last())
+                .map(|last| last.error)
+                .filter(|e| e.is_finite()),
         }
     }
 

@@ -41,17 +41,19 @@ impl Farm {
 
     fn describe(&self, state: &State, id: u64, lease: &LiveLease) -> Lease {
         let job = &state.jobs[&lease.job_id];
+        let rect = job.grid.rect(lease.tile);
         Lease {
             lease_id: id,
             job_id: lease.job_id,
             tile: lease.tile,
-            rect: job.grid.rect(lease.tile),
+            rect,
             settings: RenderSettings {
                 frame: job.grid.frame(lease.tile),
                 ..job.spec.render.clone()
             },
             expires_in_ms: lease.deadline_ms.saturating_sub(self.now_ms()),
             heartbeat_ms: self.config.heartbeat.as_millis() as u64,
+            pass: job.progress.as_ref().map(|p| p.lease(rect)),
         }
     }
 

@@ -9,6 +9,7 @@
 //! - [`resume`]: the state rebuilt from the data dir at start-up;
 //! - [`workers`]: the worker registry; [`events`]: change notifications.
 //!
+//! - [`progressive`]: progressive jobs' passes, their stopping rules and sums file.
 //! - [`commits`]: group commit of the hot transitions (one SQLite commit for many requests).
 //!
 //! [`Farm`] is the front: it owns the lock, the files and the clock, and wakes long-polling
@@ -23,6 +24,7 @@ mod completion;
 mod events;
 mod job;
 mod leasing;
+mod progressive;
 mod resume;
 mod state;
 mod tiles;
@@ -264,7 +266,8 @@ impl Farm {
 
     /// [`Farm::submit`], handing `scene` (the job's scene, already built) to the sink set by
     /// [`Farm::share_built_scenes`] before any worker can lease a tile of the job.
-    pub fn submit_built(&self, new: NewJob, scene: Option<Scene>) -> Result<JobInfo> {
+    pub fn submit_built(&self, mut new: NewJob, scene: Option<Scene>) -> Result<JobInfo> {
+        progressive::normalize(&mut new.spec)?;
         let grid = TileGrid::new(&new.spec);
         self.config
             .limits
@@ -304,6 +307,7 @@ impl Farm {
             tile_ms_total: 0,
             tiles_timed: 0,
             assembling: false,
+            progress: progressive::Progress::new(&stored.spec).map(Box::new),
         };
         let mut state = self.lock();
         let id = state.add_job(&stored, job)?;
@@ -449,5 +453,7 @@ impl Farm {
     }
 }
 
+#[cfg(test)]
+mod progressive_tests;
 #[cfg(test)]
 mod tests;

@@ -6,6 +6,7 @@
 use protocol::{JobSpec, JobState};
 
 use super::job::Job;
+use super::progressive::Progress;
 use super::state::{LiveLease, State};
 use super::tiles::{TileBook, TileGrid};
 use super::workers::Registry;
@@ -36,7 +37,10 @@ pub fn resume(
     for row in loaded {
         let job = match row {
             LoadedJob::Ok(stored) => match check(&stored, files, config) {
-                Ok(grid) => Ok(job_from_stored(*stored, grid)),
+                Ok(grid) => match restore_progress(&state.db, files, &stored) {
+                    Ok(progress) => Ok(with_progress(job_from_stored(*stored, grid), progress)),
+                    Err(reason) => Err(unloadable(*stored, reason)),
+                },
                 Err(reason) => Err(unloadable(*stored, reason)),
             },
             LoadedJob::Unloadable(u) => {
@@ -60,6 +64,7 @@ pub fn resume(
                         tile_ms_total: 0,
                         tiles_timed: 0,
                         assembling: false,
+                        progress: None,
                     },
                     mark_failed: true,
                 })
@@ -152,9 +157,40 @@ fn unloadable(stored: StoredJob, reason: String) -> Unloadable {
             tile_ms_total: 0,
             tiles_timed: 0,
             assembling: false,
+            progress: None,
         },
         mark_failed: active,
     }
+}
+
+/// A progressive job's passes from its sums file and `passes` rows (see `progressive`).
+fn restore_progress(
+    db: &Db,
+    files: &Files,
+    stored: &StoredJob,
+) -> std::result::Result<Option<Progress>, String> {
+    if stored.spec.adaptive.is_none() {
+        return Ok(None);
+    }
+    let file = files.sums(stored.id).map_err(|e| e.to_string())?;
+    let rows = db.load_passes(stored.id).map_err(|e| e.to_string())?;
+    Progress::restore(&stored.spec, file.as_deref(), rows)
+}
+
+/// The job with its passes: an active one renders the tiles its current pass needs (the
+/// tiles a pass in progress had finished render again); a finished one keeps only its
+/// counts and history (its image is stored).
+fn with_progress(mut job: Job, progress: Option<Progress>) -> Job {
+    let Some(mut progress) = progress else {
+        return job;
+    };
+    if job.is_active() {
+        job.tiles = progress.book(&job.grid);
+    } else {
+        progress.sums.data = Vec::new();
+    }
+    job.progress = Some(Box::new(progress));
+    job
 }
 
 fn job_from_stored(stored: StoredJob, grid: TileGrid) -> Job {
@@ -185,6 +221,7 @@ fn job_from_stored(stored: StoredJob, grid: TileGrid) -> Job {
         tile_ms_total: 0,
         tiles_timed: 0,
         assembling: false,
+        progress: None,
     };
     if !job.is_active() {
         job.tiles.clear_queue();

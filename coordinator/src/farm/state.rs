@@ -382,6 +382,36 @@ impl State {
         Ok(())
     }
 
+    /// A progressive job's current pass is abandoned (its time is up): its leases are
+    /// revoked, its queue dropped and its image is to be assembled from the last finished
+    /// pass. False if the job is not a progressive one that is still rendering passes.
+    pub fn stop_passes(&mut self, job_id: u64) -> Result<bool> {
+        let job = self.job(job_id)?;
+        if !job.is_active() || job.assembling || job.progress.is_none() {
+            return Ok(false);
+        }
+        let ids: Vec<u64> = self
+            .leases
+            .iter()
+            .filter(|(_, l)| l.job_id == job_id)
+            .map(|(id, _)| *id)
+            .collect();
+        if !ids.is_empty() {
+            self.db.end_leases(&ids)?;
+        }
+        for id in ids {
+            self.forget_lease(id, "the job's time limit passed");
+        }
+        let job = self.job_mut(job_id)?;
+        job.tiles.clear_queue();
+        job.assembling = true;
+        if let Some(progress) = job.progress.as_mut() {
+            progress.pending.clear();
+            progress.active.iter_mut().for_each(|a| *a = false);
+        }
+        Ok(true)
+    }
+
     /// Done: the job's image is written.
     pub fn mark_done(&mut self, job_id: u64, now: u64) -> Result<()> {
         let job = self.active_job(job_id)?;
@@ -393,6 +423,10 @@ impl State {
         };
         self.db.set_job_state(job_id, &row)?;
         self.end_job_in_memory(job_id, row, "the job is done");
+        // A progressive job's image is stored: its sums are not needed in memory any more.
+        if let Some(progress) = self.job_mut(job_id)?.progress.as_mut() {
+            progress.sums.data = Vec::new();
+        }
         Ok(())
     }
 
@@ -513,6 +547,7 @@ mod tests {
             tile_ms_total: 0,
             tiles_timed: 0,
             assembling: false,
+            progress: None,
         };
         let id = state.add_job(&stored, job).unwrap();
         (state, id)
@@ -797,6 +832,7 @@ mod tests {
             tile_ms_total: 0,
             tiles_timed: 0,
             assembling: false,
+            progress: None,
         }
     }
 

@@ -16,7 +16,7 @@
 
 use std::path::Path;
 
-use protocol::{BundleFile, JobSpec, JobState, TileFailure};
+use protocol::{BundleFile, JobSpec, JobState, PassInfo, TileFailure};
 use rusqlite::{params, Connection, OptionalExtension};
 
 use super::StoreError;
@@ -72,6 +72,16 @@ const MIGRATIONS: &[&str] = &[
     );
     ALTER TABLE leases ADD COLUMN worker_id INTEGER NOT NULL DEFAULT 0;
     ALTER TABLE tile_failures ADD COLUMN worker_id INTEGER NOT NULL DEFAULT 0;",
+    // 3: the finished passes of progressive jobs (their sums live in the job's sums file).
+    "CREATE TABLE passes (
+        job_id INTEGER NOT NULL,
+        pass INTEGER NOT NULL,
+        wall_s REAL NOT NULL,
+        spp_mean REAL NOT NULL,
+        error REAL NOT NULL,
+        active_blocks INTEGER NOT NULL,
+        PRIMARY KEY (job_id, pass)
+    ) WITHOUT ROWID;",
 ];
 
 pub struct Db {
@@ -395,6 +405,52 @@ impl Db {
                 .execute(params![job_id as i64, tile])?;
             Ok(())
         })
+    }
+
+    /// Records a finished pass of a progressive job; the tiles it finished start over in the
+    /// next pass, so their rows go.
+    pub fn record_pass(&mut self, job_id: u64, pass: &PassInfo) -> Result<(), StoreError> {
+        self.transition(|tx| {
+            tx.prepare_cached(
+                "INSERT OR REPLACE INTO passes (job_id, pass, wall_s, spp_mean, error, \
+                 active_blocks) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+            )?
+            .execute(params![
+                job_id as i64,
+                pass.pass,
+                pass.wall_s,
+                pass.spp_mean,
+                // SQLite stores no infinity: an unknown error is stored as -1.
+                if pass.error.is_finite() {
+                    pass.error
+                } else {
+                    -1.0
+                },
+                pass.active_blocks
+            ])?;
+            tx.prepare_cached("DELETE FROM tiles_done WHERE job_id = ?1")?
+                .execute([job_id as i64])?;
+            Ok(())
+        })
+    }
+
+    /// A progressive job's finished passes, in order.
+    pub fn load_passes(&self, job_id: u64) -> Result<Vec<PassInfo>, StoreError> {
+        let mut stmt = self.conn.prepare_cached(
+            "SELECT pass, wall_s, spp_mean, error, active_blocks FROM passes \
+             WHERE job_id = ?1 ORDER BY pass",
+        )?;
+        let rows = stmt.query_map([job_id as i64], |r| {
+            let error: f64 = r.get(3)?;
+            Ok(PassInfo {
+                pass: r.get(0)?,
+                wall_s: r.get(1)?,
+                spp_mean: r.get(2)?,
+                error: if error < 0.0 { f64::INFINITY } else { error },
+                active_blocks: r.get(4)?,
+            })
+        })?;
+        Ok(rows.collect::<Result<_, _>>()?)
     }
 
     fn end_job(conn: &Connection, job_id: u64, row: &JobRow) -> Result<(), StoreError> {

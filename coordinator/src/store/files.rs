@@ -223,6 +223,20 @@ impl Files {
         Ok(())
     }
 
+    fn sums_path(&self, job_id: u64) -> PathBuf {
+        self.job_dir(job_id).join("sums.bin")
+    }
+
+    /// A progressive job's state after its last finished pass (see `farm::progressive`),
+    /// replaced whole: a crash leaves the previous pass's or this one's, never a mix.
+    pub fn put_sums(&self, job_id: u64, bytes: &[u8]) -> Result<(), StoreError> {
+        self.write_atomic(&self.sums_path(job_id), bytes)
+    }
+
+    pub fn sums(&self, job_id: u64) -> Result<Option<Vec<u8>>, StoreError> {
+        Self::read_optional(&self.sums_path(job_id))
+    }
+
     pub fn image(&self, job_id: u64) -> Result<Option<Vec<u8>>, StoreError> {
         Self::read_optional(&self.image_path(job_id))
     }

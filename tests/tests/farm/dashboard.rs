@@ -463,6 +463,94 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
 }
 
 /// Reads `coordinator serve`'s stdout until its dashboard line.
+/// A progressive job refines live on the page: the preview, the convergence plot and the
+/// sample map change pass after pass while the job runs, and end on the job's final PNG.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_shows_a_progressive_job_refine_pass_by_pass() {
+    let (chromium, driver) = match browser_programs() {
+        Ok(found) => found,
+        Err(why) if std::env::var("TESSERA_REQUIRE_CHROMIUM").as_deref() == Ok("1") => {
+            panic!("TESSERA_REQUIRE_CHROMIUM=1 but {why}")
+        }
+        Err(why) => {
+            eprintln!("SKIPPED the progressive dashboard test: {why}");
+            return;
+        }
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let coord = start_coordinator(
+        &tmp.path().join("data"),
+        0,
+        &["--token", TOKEN],
+        tmp.path().join("c.log"),
+    );
+    let client = Client::new(&coord.url, Some(TOKEN.into())).unwrap();
+    let _worker = start_worker(
+        &coord.url,
+        "progressive-worker",
+        &["--token", TOKEN, "--threads", "1"],
+        tmp.path().join("w.log"),
+    );
+    let (_driver, driver_url) = start_driver(&driver, tmp.path().join("chromedriver.log")).await;
+    let browser = open_browser(&chromium, &driver_url).await;
+    // Nine passes (2, 3, 4, 6, 9, 13, 19, 28, 32 spp) on one thread: several seconds.
+    let mut spec = small_spec(1, 40);
+    spec.render.width = 240;
+    spec.render.height = 180;
+    spec.adaptive = Some(protocol::AdaptiveSpec {
+        noise_threshold: 0.0,
+        spp_min: 2,
+        spp_max: 32,
+        time_limit_s: None,
+    });
+    let job = submit(&client, &course_scene("cornell_box.scene"), spec).await;
+    browser
+        .goto(&format!("{}/#token={TOKEN}", coord.url))
+        .await
+        .unwrap();
+    wait_js(
+        &browser,
+        "!document.getElementById('progressive').hidden",
+        |v| v == true,
+    )
+    .await;
+    let plotted = "Number(document.getElementById('convergence-plot').dataset.passes || 0)";
+    wait_js(&browser, plotted, |v| v.as_u64().is_some_and(|n| n >= 1)).await;
+    let early = preview_bytes(&browser).await;
+    let early_running = client.job(job.id).await.unwrap().state == JobState::Running;
+    let map = "Number(document.getElementById('sample-map').dataset.passes || 0)";
+    wait_js(&browser, map, |v| v.as_u64().is_some_and(|n| n >= 3)).await;
+    let status = wait_js(
+        &browser,
+        "document.getElementById('progressive-status').textContent",
+        |v| v.as_str().is_some_and(|s| s.contains("mean spp")),
+    )
+    .await;
+    assert!(
+        status.as_str().unwrap().contains("estimated error"),
+        "{status}"
+    );
+    screenshot(&browser, &artifacts_dir().join("dashboard-progressive.png")).await;
+    let done = wait_finished(&client, job.id, Duration::from_secs(120)).await;
+    assert_eq!(done.state, JobState::Done);
+    wait_js(&browser, plotted, |v| {
+        v.as_u64() == done.passes.map(u64::from)
+    })
+    .await;
+    let png = client.image(job.id).await.unwrap();
+    let start = Instant::now();
+    while preview_bytes(&browser).await != png {
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "the preview never showed the final PNG"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    if early_running {
+        assert_ne!(early, png, "the preview refined after the first passes");
+    }
+}
+
 fn dashboard_line(mut cmd: Command, log: PathBuf) -> String {
     use std::io::{BufRead, BufReader};
     cmd.stdout(std::process::Stdio::piped());

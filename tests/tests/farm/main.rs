@@ -13,4 +13,5 @@ mod deploy;
 mod e2e;
 mod faults;
 mod hardening;
+mod progressive;
 mod webdriver;

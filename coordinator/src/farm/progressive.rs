@@ -1,0 +1,505 @@
+//! Progressive jobs (`"adaptive"` in the job spec): the job renders in passes. A pass leases
+//! every tile that still has a sampling block; each lease continues the tile's running sums
+//! over the pass's sample range (`GET`/`PUT /leases/{id}/sums`), and the sums land in
+//! `pending`. When the pass's last tile lands, the pass ends (on a thread of its own, like an
+//! assembly): the pending sums are merged, every block's error is estimated and the stopping
+//! rules decide which blocks sample in the next pass (tracer-core's `adaptive` module does
+//! the arithmetic). The job ends when no block samples any more or its time limit has passed;
+//! its image is then that of the last finished pass.
+//!
+//! Persistence: at each pass end the job's sums file (sums, per-block counts and decisions,
+//! written whole and renamed into place) is written first, then the pass's row in the
+//! `passes` table. The file is the truth on restart: a pass whose row is missing (a crash in
+//! between) is rebuilt from it, and a pass in progress starts again from the last finished
+//! pass. Nothing of a finished pass is lost.
+
+use std::collections::HashMap;
+
+use protocol::{AdaptiveSpec, JobSpec, PassInfo, PassLease};
+use tracer_core::adaptive::{self, SumImage};
+use tracer_core::TileRect;
+
+use super::tiles::{TileBook, TileGrid};
+use super::{Farm, FarmError, FarmEvent, Result};
+use protocol::{ApiError, JobState};
+
+/// A progressive job's passes.
+#[derive(Debug)]
+pub struct Progress {
+    pub rules: AdaptiveSpec,
+    /// The running sums after the last finished pass (emptied once the job is done and its
+    /// image stored).
+    pub sums: SumImage,
+    /// Samples per pixel of each block after the last finished pass.
+    pub counts: Vec<u32>,
+    /// The blocks that sample in the current pass.
+    pub active: Vec<bool>,
+    /// Every finished pass, in order.
+    pub passes: Vec<PassInfo>,
+    /// The current pass's finished tiles: their new sums, merged when the pass ends.
+    pub pending: HashMap<u32, Vec<f64>>,
+}
+
+/// Magic and version of the sums file.
+const MAGIC: &[u8; 8] = b"TSUMS\0\0\x01";
+
+impl Progress {
+    /// The passes of a job whose spec asks for them; None for a one-shot job.
+    pub fn new(spec: &JobSpec) -> Option<Progress> {
+        let rules = spec.adaptive.clone()?;
+        let (w, h) = (spec.render.width, spec.render.height);
+        let (cols, rows) = adaptive::blocks(w, h);
+        let blocks = cols as usize * rows as usize;
+        Some(Progress {
+            rules,
+            sums: SumImage::new(w, h),
+            counts: vec![0; blocks],
+            active: vec![true; blocks],
+            passes: Vec::new(),
+            pending: HashMap::new(),
+        })
+    }
+
+    /// The pass being rendered now (the count of finished ones).
+    pub fn pass(&self) -> u32 {
+        self.passes.len() as u32
+    }
+
+    /// The sample range of the current pass.
+    pub fn samples(&self) -> (u32, u32) {
+        let (min, max) = (self.rules.spp_min, self.rules.spp_max);
+        let pass = self.pass();
+        let from = match pass {
+            0 => 0,
+            p => adaptive::pass_target(p - 1, min, max),
+        };
+        (from, adaptive::pass_target(pass, min, max))
+    }
+
+    /// What the current pass asks of the tile at `rect`.
+    pub fn lease(&self, rect: TileRect) -> PassLease {
+        let (from, to) = self.samples();
+        PassLease {
+            pass: self.pass(),
+            samples_from: from,
+            samples_to: to,
+            active_blocks: adaptive::blocks_in(self.sums.width, rect)
+                .into_iter()
+                .filter(|&b| self.active[b as usize])
+                .collect(),
+        }
+    }
+
+    /// The current pass's tile book: tiles without a sampling block are done already.
+    pub fn book(&self, grid: &TileGrid) -> TileBook {
+        let mut book = TileBook::new(grid.total_u64() as u32);
+        for tile in 0..book.total() {
+            let rect = grid.rect(tile);
+            let sampling = adaptive::blocks_in(self.sums.width, rect)
+                .iter()
+                .any(|&b| self.active[b as usize]);
+            if !sampling {
+                book.mark_done(tile);
+            }
+        }
+        book
+    }
+
+    /// Mean samples per pixel after the last finished pass.
+    pub fn spp_mean(&self) -> f64 {
+        let (w, h) = (self.sums.width, self.sums.height);
+        let cols = w.div_ceil(adaptive::BLOCK);
+        let mut total = 0.0;
+        for (b, &n) in self.counts.iter().enumerate() {
+            let (bx, by) = (b as u32 % cols, b as u32 / cols);
+            let bw = adaptive::BLOCK.min(w - bx * adaptive::BLOCK);
+            let bh = adaptive::BLOCK.min(h - by * adaptive::BLOCK);
+            total += n as f64 * (bw * bh) as f64;
+        }
+        total / (w as f64 * h as f64)
+    }
+
+    /// Ends the current pass: merges its tiles' sums, counts its samples, applies the
+    /// stopping rules and records it. Returns true when the job ends here (no block samples
+    /// any more, or `time_up`).
+    pub fn finish_pass(&mut self, grid: &TileGrid, wall_ms: u64, time_up: bool) -> bool {
+        for (tile, sums) in self.pending.drain() {
+            self.sums.put_tile(grid.rect(tile), &sums);
+        }
+        let (_, to) = self.samples();
+        let rules = &self.rules;
+        for (b, active) in self.active.iter_mut().enumerate() {
+            if !*active {
+                continue;
+            }
+            self.counts[b] = to;
+            let n = to;
+            // A threshold of 0 never stops a block on noise: even a flat block then goes to
+            // spp_max, so the image is exactly the one-shot spp_max render.
+            let quiet = rules.noise_threshold > 0.0
+                && n >= rules.spp_min
+                && self.sums.block_error(b, n) <= rules.noise_threshold;
+            *active = n < rules.spp_max && !quiet;
+        }
+        let active_blocks = self.active.iter().filter(|a| **a).count() as u32;
+        self.passes.push(PassInfo {
+            pass: self.pass(),
+            wall_s: wall_ms as f64 / 1000.0,
+            spp_mean: self.spp_mean(),
+            error: self.sums.error(&self.counts),
+            active_blocks,
+        });
+        let ends = active_blocks == 0 || time_up;
+        if ends {
+            self.active.iter_mut().for_each(|a| *a = false);
+        }
+        ends
+    }
+
+    /// The sums file: magic, finished passes, the last pass's wall time, the image size, the
+    /// per-block counts and decisions, then the sums (all little-endian).
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(48 + self.counts.len() * 5 + self.sums.data.len() * 8);
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(&self.pass().to_le_bytes());
+        let wall = self.passes.last().map_or(0.0, |p| p.wall_s);
+        out.extend_from_slice(&wall.to_le_bytes());
+        out.extend_from_slice(&self.sums.width.to_le_bytes());
+        out.extend_from_slice(&self.sums.height.to_le_bytes());
+        for n in &self.counts {
+            out.extend_from_slice(&n.to_le_bytes());
+        }
+        out.extend(self.active.iter().map(|&a| a as u8));
+        out.extend_from_slice(&SumImage::to_bytes(&self.sums.data));
+        out
+    }
+
+    /// Restores the passes of `spec`'s job from its sums file and its `passes` rows (see the
+    /// module notes). Without a file (no pass finished) the job starts from its first pass.
+    pub fn restore(
+        spec: &JobSpec,
+        file: Option<&[u8]>,
+        mut rows: Vec<PassInfo>,
+    ) -> std::result::Result<Option<Progress>, String> {
+        let Some(mut progress) = Progress::new(spec) else {
+            return Ok(None);
+        };
+        let Some(bytes) = file else {
+            return Ok(Some(progress));
+        };
+        let blocks = progress.counts.len();
+        let (w, h) = (progress.sums.width, progress.sums.height);
+        let header = MAGIC.len() + 4 + 8 + 4 + 4;
+        let expected = header + blocks * 5 + w as usize * h as usize * adaptive::SUMS * 8;
+        if bytes.len() != expected || &bytes[..MAGIC.len()] != MAGIC {
+            return Err(format!(
+                "its sums file is not a {w}x{h} progressive state ({} bytes, expected {expected})",
+                bytes.len()
+            ));
+        }
+        let u32_at = |at: usize| u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4"));
+        let passes = u32_at(MAGIC.len());
+        let wall = f64::from_le_bytes(
+            bytes[MAGIC.len() + 4..MAGIC.len() + 12]
+                .try_into()
+                .expect("8"),
+        );
+        if (u32_at(MAGIC.len() + 12), u32_at(MAGIC.len() + 16)) != (w, h) {
+            return Err("its sums file is for another image size".into());
+        }
+        for (b, n) in progress.counts.iter_mut().enumerate() {
+            *n = u32_at(header + 4 * b);
+        }
+        for (b, a) in progress.active.iter_mut().enumerate() {
+            *a = bytes[header + 4 * blocks + b] != 0;
+        }
+        progress.sums.data = SumImage::from_bytes(
+            &bytes[header + 5 * blocks..],
+            w as usize * h as usize,
+            "the sums file",
+        )
+        .map_err(|e| e.to_string())?;
+        rows.retain(|r| r.pass < passes);
+        if rows.len() as u32 + 1 == passes {
+            // Its file was written but the crash came before its row: rebuilt from the file.
+            rows.push(PassInfo {
+                pass: passes - 1,
+                wall_s: wall,
+                spp_mean: progress.spp_mean(),
+                error: progress.sums.error(&progress.counts),
+                active_blocks: progress.active.iter().filter(|a| **a).count() as u32,
+            });
+        }
+        if rows.len() as u32 != passes {
+            return Err(format!(
+                "its sums file has {passes} passes but the database {}",
+                rows.len()
+            ));
+        }
+        progress.passes = rows;
+        Ok(Some(progress))
+    }
+}
+
+/// Checks a progressive submission and makes its spec say what it renders: the strata of
+/// `spp_max` (a pass renders a range of them).
+pub fn normalize(spec: &mut JobSpec) -> Result<()> {
+    let Some(rules) = &spec.adaptive else {
+        return Ok(());
+    };
+    let bad = |e: String| FarmError::BadRequest(ApiError::new(format!("adaptive: {e}")));
+    rules.validate().map_err(bad)?;
+    if spec.frames.is_some() {
+        return Err(bad(
+            "a progressive job renders one frame, not a frame range".into(),
+        ));
+    }
+    spec.render.spp = rules.spp_max;
+    Ok(())
+}
+
+impl Farm {
+    /// Ends a progressive job's pass whose last tile just landed, off the caller's thread.
+    pub(super) fn start_pass_end(&self, job_id: u64) {
+        let Some(farm) = self.me.upgrade() else {
+            return;
+        };
+        let spawned = std::thread::Builder::new()
+            .name(format!("pass-{job_id}"))
+            .spawn(move || farm.end_pass_or_fail(job_id));
+        match spawned {
+            Ok(handle) => {
+                let mut running = self.assemblies.lock().unwrap_or_else(|p| p.into_inner());
+                running.retain(|h| !h.is_finished());
+                running.push(handle);
+            }
+            Err(_) => self.end_pass_or_fail(job_id),
+        }
+    }
+
+    fn end_pass_or_fail(&self, job_id: u64) {
+        if let Err(e) = self.end_pass(job_id) {
+            let error = format!("ending a pass failed: {e}");
+            tracing::error!("job {job_id}: {error}");
+            let now = self.now_ms();
+            let ended =
+                self.lock()
+                    .end_job(job_id, JobState::Failed, Some(error), now, "the job failed");
+            if ended.is_ok() && self.flush().is_ok() {
+                self.events.send(FarmEvent::Job(job_id));
+            }
+        }
+    }
+
+    /// See the module notes: merge, decide, store the file, then the row; then the next pass
+    /// is queued, or the job's image assembled.
+    fn end_pass(&self, job_id: u64) -> Result<()> {
+        let now = self.now_ms();
+        let (file, info, ends) = {
+            let mut state = self.lock();
+            let job = state
+                .jobs
+                .get_mut(&job_id)
+                .ok_or_else(|| FarmError::NotFound(format!("no job {job_id}")))?;
+            if !job.is_active() {
+                return Ok(());
+            }
+            let wall_ms = now.saturating_sub(job.started_ms.unwrap_or(now));
+            let grid = job.grid;
+            let Some(progress) = job.progress.as_mut() else {
+                return Ok(());
+            };
+            let time_up = progress
+                .rules
+                .time_limit_s
+                .is_some_and(|limit| wall_ms as f64 >= limit * 1000.0);
+            let ends = progress.finish_pass(&grid, wall_ms, time_up);
+            let info = progress.passes.last().cloned().expect("a pass was pushed");
+            (progress.encode(), info, ends)
+        };
+        self.files.put_sums(job_id, &file)?;
+        drop(file);
+        {
+            let mut state = self.lock();
+            state.db.record_pass(job_id, &info)?;
+            let job = state
+                .jobs
+                .get_mut(&job_id)
+                .ok_or_else(|| FarmError::NotFound(format!("no job {job_id}")))?;
+            if !ends {
+                if let Some(progress) = &job.progress {
+                    job.tiles = progress.book(&job.grid);
+                    job.assembling = false;
+                }
+            }
+        }
+        self.flush()?;
+        tracing::info!(
+            "job {job_id}: pass {} done at {:.2}s: mean spp {:.2}, error {:.4}, {} blocks sampling",
+            info.pass,
+            info.wall_s,
+            info.spp_mean,
+            info.error,
+            info.active_blocks
+        );
+        self.events.send(FarmEvent::Job(job_id));
+        if ends {
+            self.assemble_now(job_id);
+        } else {
+            self.work.notify_waiters();
+        }
+        Ok(())
+    }
+
+    /// Ends every progressive job whose time limit has passed with the image of its last
+    /// finished pass (the current pass's leases are revoked). A job still in its first pass
+    /// finishes that pass first: it has no image yet. Called by the reaper.
+    pub fn check_time_limits(&self) -> Result<()> {
+        let now = self.now_ms();
+        let due: Vec<u64> = {
+            let state = self.lock();
+            state
+                .jobs
+                .values()
+                .filter(|j| j.is_active() && !j.assembling)
+                .filter(|j| {
+                    let (Some(progress), Some(started)) = (&j.progress, j.started_ms) else {
+                        return false;
+                    };
+                    progress.pass() > 0
+                        && progress.rules.time_limit_s.is_some_and(|limit| {
+                            now.saturating_sub(started) as f64 >= limit * 1000.0
+                        })
+                })
+                .map(|j| j.id)
+                .collect()
+        };
+        for job_id in due {
+            let stopped = self.lock().stop_passes(job_id)?;
+            self.flush()?;
+            if stopped {
+                tracing::info!("job {job_id}: time limit reached; ending with its last pass");
+                for tile in 0..self.lock().job(job_id)?.total() {
+                    self.events.tile(job_id, tile);
+                }
+                self.start_assembly(job_id);
+            }
+        }
+        Ok(())
+    }
+
+    /// A running tile's sums so far, for its pass lease (`GET /leases/{id}/sums`).
+    pub fn lease_sums(&self, lease_id: u64) -> Result<Vec<u8>> {
+        let state = self.lock();
+        let lease = state.live(lease_id)?;
+        let job = state.job(lease.job_id)?;
+        let Some(progress) = &job.progress else {
+            return Err(FarmError::Conflict(format!(
+                "lease {lease_id} is not a pass of a progressive job"
+            )));
+        };
+        let tile = progress.sums.tile(job.grid.rect(lease.tile));
+        drop(state);
+        Ok(SumImage::to_bytes(&tile))
+    }
+
+    /// A pass lease's new sums (`PUT /leases/{id}/sums`): kept until the pass ends. The
+    /// pass's last tile ends it.
+    pub fn complete_sums(&self, lease_id: u64, bytes: &[u8]) -> Result<protocol::Completion> {
+        let (rect, progressive) = {
+            let state = self.lock();
+            let lease = state.live(lease_id)?;
+            let job = state.job(lease.job_id)?;
+            (job.grid.rect(lease.tile), job.progress.is_some())
+        };
+        if !progressive {
+            return Err(FarmError::Conflict(format!(
+                "lease {lease_id} is not a pass of a progressive job: PUT its pixels"
+            )));
+        }
+        let bad = |e: String| FarmError::BadRequest(ApiError::new(e));
+        let sums = SumImage::from_bytes(bytes, rect.pixel_count(), "the tile's sums")
+            .map_err(|e| bad(e.to_string()))?;
+        if let Some(at) = sums.iter().position(|v| !v.is_finite()) {
+            return Err(bad(format!(
+                "the tile's sums hold a non-finite value at value {at}"
+            )));
+        }
+        let now = self.now_ms();
+        let mut state = self.lock();
+        let lease = state.live(lease_id)?.clone();
+        let done = state.complete(lease_id, now)?;
+        if let Some(progress) = state
+            .jobs
+            .get_mut(&lease.job_id)
+            .and_then(|j| j.progress.as_mut())
+        {
+            progress.pending.insert(lease.tile, sums);
+        }
+        drop(state);
+        self.metrics
+            .tiles_completed
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        self.events.tile(lease.job_id, lease.tile);
+        if done.last {
+            self.start_pass_end(lease.job_id);
+        }
+        Ok(protocol::Completion {
+            tiles_done: done.tiles_done,
+            tiles_total: done.tiles_total,
+        })
+    }
+
+    /// Every finished pass of a job (none for a one-shot job).
+    pub fn convergence(&self, job_id: u64) -> Result<protocol::Convergence> {
+        let state = self.lock();
+        let job = state.job(job_id)?;
+        Ok(protocol::Convergence {
+            job_id,
+            passes: job
+                .progress
+                .as_ref()
+                .map(|p| p.passes.clone())
+                .unwrap_or_default(),
+        })
+    }
+
+    /// Where a progressive job's samples went, as PNG (each pixel's count over spp_max).
+    pub fn samples_png(&self, job_id: u64) -> Result<Vec<u8>> {
+        let (w, h, counts, max) = {
+            let state = self.lock();
+            let job = state.job(job_id)?;
+            match &job.progress {
+                Some(p) if p.pass() > 0 => (
+                    job.spec.render.width,
+                    job.spec.render.height,
+                    p.counts.clone(),
+                    p.rules.spp_max,
+                ),
+                Some(_) => {
+                    return Err(FarmError::Conflict(format!(
+                        "job {job_id} has not finished a pass yet"
+                    )))
+                }
+                None => {
+                    return Err(FarmError::Conflict(format!(
+                        "job {job_id} is not progressive: every pixel has its {} samples",
+                        job.spec.render.spp
+                    )))
+                }
+            }
+        };
+        Ok(adaptive::sample_map(w, h, &counts, max).to_png())
+    }
+
+    /// The image of a progressive job's last finished pass (black before the first), or None
+    /// for a one-shot job or one whose sums are already dropped (done: its image is stored).
+    pub(super) fn progressive_image(&self, job_id: u64) -> Result<Option<tracer_core::Image>> {
+        let state = self.lock();
+        let job = state.job(job_id)?;
+        Ok(match &job.progress {
+            Some(p) if !p.sums.data.is_empty() => Some(p.sums.image(&p.counts)),
+            _ => None,
+        })
+    }
+}

@@ -1,0 +1,355 @@
+//! Progressive jobs through the farm's state machine, with in-process "workers" that render
+//! pass leases with tracer-core exactly as the worker binary does (`worker::pass`).
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use protocol::{AdaptiveSpec, JobSpec, JobState, Lease};
+use tracer_core::adaptive::{self, SumImage};
+use tracer_core::{Image, ImageFormat, Renderer, SampleOrder, Scene};
+
+use super::*;
+use crate::clock::ManualClock;
+
+fn cornell() -> Scene {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/scenes/course/cornell_box.scene");
+    Scene::load(&path).unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn adaptive_job(farm: &Farm, tile: u32, rules: AdaptiveSpec) -> NewJob {
+    sized_job(farm, 24, 16, tile, rules)
+}
+
+fn sized_job(farm: &Farm, width: u32, height: u32, tile: u32, rules: AdaptiveSpec) -> NewJob {
+    let mut spec = JobSpec::default();
+    spec.render.width = width;
+    spec.render.height = height;
+    spec.tile_size = tile;
+    spec.adaptive = Some(rules);
+    NewJob {
+        name: "cornell".into(),
+        scene_file: "cornell_box.scene".into(),
+        scene_hash: farm.files().put_blob(b"<scene/>").unwrap(),
+        spec,
+        assets: vec![],
+    }
+}
+
+fn rules(threshold: f64, spp_min: u32, spp_max: u32) -> AdaptiveSpec {
+    AdaptiveSpec {
+        noise_threshold: threshold,
+        spp_min,
+        spp_max,
+        time_limit_s: None,
+    }
+}
+
+/// Renders one lease as the worker does and delivers it. False when nothing was leased.
+fn work_once(farm: &Farm, scene: &Scene, worker: u64) -> bool {
+    let Some(lease) = farm.lease(worker).unwrap() else {
+        return false;
+    };
+    let sums = render(farm, scene, &lease);
+    farm.complete_sums(lease.lease_id, &SumImage::to_bytes(&sums))
+        .unwrap();
+    true
+}
+
+fn render(farm: &Farm, scene: &Scene, lease: &Lease) -> Vec<f64> {
+    let pass = lease.pass.as_ref().expect("a pass lease");
+    let mut sums = if pass.samples_from == 0 {
+        vec![0.0; lease.rect.pixel_count() * adaptive::SUMS]
+    } else {
+        let bytes = farm.lease_sums(lease.lease_id).unwrap();
+        SumImage::from_bytes(&bytes, lease.rect.pixel_count(), "sums").unwrap()
+    };
+    let renderer = Renderer::new(scene, &lease.settings)
+        .unwrap()
+        .with_sample_order(SampleOrder::Progressive);
+    let width = lease.settings.width;
+    let active = |x: u32, y: u32| {
+        pass.active_blocks
+            .contains(&(adaptive::block_of(width, x, y) as u32))
+    };
+    assert!(renderer.render_tile_samples(
+        lease.rect,
+        pass.samples_from..pass.samples_to,
+        &active,
+        &mut sums,
+        &AtomicBool::new(false),
+    ));
+    sums
+}
+
+/// Runs the job to its end with `workers` workers taking turns.
+fn run(farm: &Farm, scene: &Scene, job: u64, workers: usize) {
+    let ids: Vec<u64> = (0..workers)
+        .map(|i| farm.register_worker(&format!("w{i}")).unwrap().worker_id)
+        .collect();
+    for _ in 0..10_000 {
+        let mut any = false;
+        for &w in &ids {
+            any |= work_once(farm, scene, w);
+        }
+        if !any {
+            farm.wait_for_assemblies();
+            if farm.job(job).unwrap().state.is_finished() {
+                return;
+            }
+        }
+    }
+    panic!("job {job} never finished");
+}
+
+/// The job's linear image (PFM: the f32 pixels, bit for bit).
+fn linear(farm: &Farm, job: u64) -> Vec<u8> {
+    farm.image_in(job, None, ImageFormat::Pfm).unwrap()
+}
+
+fn farm_at(dir: &std::path::Path, clock: Arc<ManualClock>) -> Arc<Farm> {
+    Farm::open(dir, FarmConfig::default(), clock).unwrap()
+}
+
+#[test]
+fn pass_by_pass_equals_the_one_shot_render_and_the_error_falls() {
+    let scene = cornell();
+    let dir = tempfile::tempdir().unwrap();
+    let clock = Arc::new(ManualClock::new(1_000_000));
+    let farm = Farm::for_tests(dir.path(), FarmConfig::default(), clock);
+    // Threshold 0: every block goes to spp_max, in passes of 4, 6, 9, 13 and 16 samples.
+    let job = farm
+        .submit(adaptive_job(&farm, 7, rules(0.0, 4, 16)))
+        .unwrap();
+    assert_eq!(job.spec.render.spp, 16, "spp_max replaces spp");
+    run(&farm, &scene, job.id, 1);
+    let info = farm.job(job.id).unwrap();
+    assert_eq!(info.state, JobState::Done);
+    assert_eq!((info.passes, info.spp_mean), (Some(5), Some(16.0)));
+    let settings = tracer_core::RenderSettings {
+        spp: 16,
+        ..job.spec.render.clone()
+    };
+    let one_shot = Renderer::new(&scene, &settings)
+        .unwrap()
+        .with_sample_order(SampleOrder::Progressive)
+        .render_image(&|_, _| {});
+    let pfm = farm.image_in(job.id, None, ImageFormat::Pfm).unwrap();
+    assert_eq!(
+        pfm,
+        one_shot.to_pfm(),
+        "the same bytes as the one-shot render"
+    );
+    let passes = farm.convergence(job.id).unwrap().passes;
+    let spp: Vec<f64> = passes.iter().map(|p| p.spp_mean).collect();
+    assert_eq!(spp, [4.0, 6.0, 9.0, 13.0, 16.0]);
+    let errors: Vec<f64> = passes.iter().map(|p| p.error).collect();
+    // An estimate is itself noisy: it may wobble a little, but falls as samples add up.
+    assert!(
+        errors.windows(2).all(|w| w[1] < w[0] * 1.1) && errors[4] < errors[0] * 0.75,
+        "the estimated error falls pass by pass: {errors:?}"
+    );
+}
+
+#[test]
+fn a_noise_threshold_stops_flat_blocks_and_keeps_sampling_noisy_ones() {
+    let scene = cornell();
+    let dir = tempfile::tempdir().unwrap();
+    let farm = Farm::for_tests(
+        dir.path(),
+        FarmConfig::default(),
+        Arc::new(ManualClock::new(0)),
+    );
+    let job = farm
+        .submit(sized_job(&farm, 64, 48, 16, rules(0.02, 4, 64)))
+        .unwrap();
+    run(&farm, &scene, job.id, 1);
+    let state = farm.lock();
+    let progress = state.job(job.id).unwrap().progress.as_ref().unwrap();
+    let counts = progress.counts.clone();
+    drop(state);
+    let (min, max) = (*counts.iter().min().unwrap(), *counts.iter().max().unwrap());
+    assert_eq!(min, 4, "some block stopped at spp_min: {counts:?}");
+    assert!(
+        max >= 63,
+        "some block kept sampling to (nearly) spp_max: {counts:?}"
+    );
+    // The sample map shows it: grey levels differ.
+    let map = Image::from_png_bytes(&farm.samples_png(job.id).unwrap()).unwrap();
+    let levels: std::collections::BTreeSet<u32> =
+        map.pixels.iter().map(|v| (v * 255.0) as u32).collect();
+    assert!(levels.len() > 1, "{levels:?}");
+    let info = farm.job(job.id).unwrap();
+    assert!(info.spp_mean.unwrap() < 64.0 && info.error_estimate.is_some());
+}
+
+#[test]
+fn the_image_is_the_same_with_one_or_three_workers_and_any_tile_size() {
+    let scene = cornell();
+    let mut images = Vec::new();
+    for (workers, tile) in [(1, 8), (3, 5), (3, 16)] {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = Farm::for_tests(
+            dir.path(),
+            FarmConfig::default(),
+            Arc::new(ManualClock::new(0)),
+        );
+        let job = farm
+            .submit(adaptive_job(&farm, tile, rules(0.05, 2, 24)))
+            .unwrap();
+        run(&farm, &scene, job.id, workers);
+        let passes = farm.convergence(job.id).unwrap().passes;
+        images.push((linear(&farm, job.id), passes));
+    }
+    assert_eq!(images[0], images[1]);
+    assert_eq!(images[0], images[2]);
+}
+
+#[test]
+fn the_time_limit_ends_the_job_with_its_last_finished_pass() {
+    let scene = cornell();
+    let dir = tempfile::tempdir().unwrap();
+    let clock = Arc::new(ManualClock::new(0));
+    let farm = Farm::for_tests(dir.path(), FarmConfig::default(), clock.clone());
+    let mut r = rules(0.0, 2, 64);
+    r.time_limit_s = Some(5.0);
+    let job = farm.submit(adaptive_job(&farm, 8, r)).unwrap();
+    let w = farm.register_worker("w").unwrap().worker_id;
+    // Pass 0 in full, then part of pass 1 when the time runs out.
+    while farm.job(job.id).unwrap().passes == Some(0) {
+        assert!(work_once(&farm, &scene, w));
+        farm.wait_for_assemblies();
+    }
+    assert!(work_once(&farm, &scene, w));
+    let held = farm.lease(w).unwrap().unwrap();
+    clock.advance(4_999);
+    farm.check_time_limits().unwrap();
+    assert_eq!(farm.job(job.id).unwrap().state, JobState::Running);
+    clock.advance(1);
+    farm.check_time_limits().unwrap();
+    farm.wait_for_assemblies();
+    let info = farm.job(job.id).unwrap();
+    assert_eq!(info.state, JobState::Done);
+    assert_eq!((info.passes, info.spp_mean), (Some(1), Some(2.0)));
+    // The lease of the abandoned pass is revoked; the image is pass 0's, whole.
+    assert!(matches!(
+        farm.complete_sums(held.lease_id, &[]),
+        Err(FarmError::Stale(_))
+    ));
+    let png = farm.image(job.id, None).unwrap();
+    let image = Image::from_png_bytes(&png).unwrap();
+    assert_eq!((image.width, image.height), (24, 16));
+    assert!(image.pixels.iter().any(|v| *v > 0.0));
+}
+
+#[test]
+fn a_coordinator_killed_between_passes_resumes_without_losing_a_finished_pass() {
+    let scene = cornell();
+    let reference = {
+        let dir = tempfile::tempdir().unwrap();
+        let farm = farm_at(dir.path(), Arc::new(ManualClock::new(0)));
+        let job = farm
+            .submit(adaptive_job(&farm, 8, rules(0.03, 2, 16)))
+            .unwrap();
+        run(&farm, &scene, job.id, 1);
+        (
+            linear(&farm, job.id),
+            farm.convergence(job.id).unwrap().passes,
+        )
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let clock = Arc::new(ManualClock::new(0));
+    let (job, passes_before) = {
+        let farm = farm_at(dir.path(), clock.clone());
+        let job = farm
+            .submit(adaptive_job(&farm, 8, rules(0.03, 2, 16)))
+            .unwrap();
+        let w = farm.register_worker("w").unwrap().worker_id;
+        while farm.job(job.id).unwrap().passes.unwrap() < 2 {
+            assert!(work_once(&farm, &scene, w));
+            farm.wait_for_assemblies();
+        }
+        // Part of pass 2 is done when the coordinator dies.
+        assert!(work_once(&farm, &scene, w));
+        let before = farm.convergence(job.id).unwrap().passes;
+        (job.id, before)
+        // Dropped without a shutdown: only what was committed and written survives.
+    };
+    let farm = farm_at(dir.path(), clock);
+    let info = farm.job(job).unwrap();
+    assert_eq!(info.passes, Some(2), "both finished passes survived");
+    assert_eq!(farm.convergence(job).unwrap().passes, passes_before);
+    run(&farm, &scene, job, 1);
+    assert_eq!(
+        (
+            linear(&farm, job),
+            farm.convergence(job).unwrap().passes.len()
+        ),
+        (reference.0, reference.1.len())
+    );
+}
+
+#[test]
+fn a_lost_pass_row_is_rebuilt_from_the_sums_file() {
+    let scene = cornell();
+    let dir = tempfile::tempdir().unwrap();
+    let clock = Arc::new(ManualClock::new(0));
+    let job = {
+        let farm = farm_at(dir.path(), clock.clone());
+        let job = farm
+            .submit(adaptive_job(&farm, 8, rules(0.0, 2, 16)))
+            .unwrap();
+        let w = farm.register_worker("w").unwrap().worker_id;
+        while farm.job(job.id).unwrap().passes.unwrap() < 2 {
+            assert!(work_once(&farm, &scene, w));
+            farm.wait_for_assemblies();
+        }
+        // As if the crash came after the sums file but before the pass's row.
+        farm.lock()
+            .db
+            .execute_for_tests("DELETE FROM passes WHERE pass = 1");
+        farm.flush().unwrap();
+        job.id
+    };
+    let farm = farm_at(dir.path(), clock);
+    let passes = farm.convergence(job).unwrap().passes;
+    assert_eq!(passes.len(), 2);
+    assert_eq!(passes[1].spp_mean, 3.0);
+}
+
+#[test]
+fn bad_rules_and_pixels_for_a_pass_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let farm = Farm::for_tests(
+        dir.path(),
+        FarmConfig::default(),
+        Arc::new(ManualClock::new(0)),
+    );
+    for bad in [rules(0.1, 1, 8), rules(0.1, 8, 4), rules(-1.0, 2, 8)] {
+        let err = farm.submit(adaptive_job(&farm, 8, bad)).unwrap_err();
+        assert!(matches!(err, FarmError::BadRequest(_)), "{err}");
+    }
+    let mut frames = adaptive_job(&farm, 8, rules(0.1, 2, 8));
+    frames.spec.frames = Some(tracer_core::FrameRange::new(0, 1).unwrap());
+    assert!(matches!(farm.submit(frames), Err(FarmError::BadRequest(_))));
+    let job = farm
+        .submit(adaptive_job(&farm, 8, rules(0.1, 2, 8)))
+        .unwrap();
+    let w = farm.register_worker("w").unwrap().worker_id;
+    let lease = farm.lease(w).unwrap().unwrap();
+    let pixels = protocol::pixels_to_bytes(&vec![0.5; lease.rect.pixel_count() * 3]);
+    assert!(matches!(
+        farm.complete(lease.lease_id, &pixels),
+        Err(FarmError::BadRequest(_))
+    ));
+    let nan = SumImage::to_bytes(&vec![f64::NAN; lease.rect.pixel_count() * adaptive::SUMS]);
+    assert!(matches!(
+        farm.complete_sums(lease.lease_id, &nan),
+        Err(FarmError::BadRequest(_))
+    ));
+    assert!(matches!(
+        farm.samples_png(job.id),
+        Err(FarmError::Conflict(_))
+    ));
+}

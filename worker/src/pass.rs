@@ -1,0 +1,91 @@
+//! Progressive passes: a lease with a `pass` continues the tile's running sums (fetched from
+//! the coordinator) over its sample range and answers with the new sums; any other lease
+//! renders the tile whole and answers with pixels. Kept apart from the pull loop, which only
+//! asks this module what to render and where to send it.
+
+use std::sync::atomic::AtomicBool;
+
+use protocol::client::{Client, ClientError};
+use protocol::{pixels_to_bytes, Completion, Lease};
+use tracer_core::adaptive::{block_of, SumImage};
+use tracer_core::{Renderer, SampleOrder, Scene};
+
+/// What a lease needs before rendering: nothing, or the sums a pass continues.
+pub enum Start {
+    Tile,
+    Pass(Vec<f64>),
+}
+
+/// A rendered lease, as the bytes its completion route takes.
+pub struct Output {
+    bytes: Vec<u8>,
+    pass: bool,
+}
+
+/// Fetches what `lease` continues from (a first pass starts from zeros without asking).
+pub async fn start(client: &Client, lease: &Lease) -> Result<Start, ClientError> {
+    let Some(pass) = &lease.pass else {
+        return Ok(Start::Tile);
+    };
+    let pixels = lease.rect.pixel_count();
+    if pass.samples_from == 0 {
+        return Ok(Start::Pass(vec![0.0; pixels * tracer_core::adaptive::SUMS]));
+    }
+    let bytes = client.lease_sums(lease.lease_id).await?;
+    SumImage::from_bytes(&bytes, pixels, "the lease's sums")
+        .map(Start::Pass)
+        .map_err(|e| ClientError::Protocol(e.to_string()))
+}
+
+/// Renders `lease` (on the current rayon pool); None if `cancel` was set first.
+pub fn render(
+    scene: &Scene,
+    lease: &Lease,
+    start: Start,
+    cancel: &AtomicBool,
+) -> Result<Option<Output>, String> {
+    let renderer = Renderer::new(scene, &lease.settings).map_err(|e| e.to_string())?;
+    match (start, &lease.pass) {
+        (Start::Pass(mut sums), Some(pass)) => {
+            let renderer = renderer.with_sample_order(SampleOrder::Progressive);
+            let width = lease.settings.width;
+            let active = |x: u32, y: u32| {
+                pass.active_blocks
+                    .binary_search(&(block_of(width, x, y) as u32))
+                    .is_ok()
+            };
+            let done = renderer.render_tile_samples(
+                lease.rect,
+                pass.samples_from..pass.samples_to,
+                &active,
+                &mut sums,
+                cancel,
+            );
+            Ok(done.then(|| Output {
+                bytes: SumImage::to_bytes(&sums),
+                pass: true,
+            }))
+        }
+        _ => Ok(renderer
+            .render_tile(lease.rect, cancel)
+            .map(|image| Output {
+                bytes: pixels_to_bytes(&image.pixels),
+                pass: false,
+            })),
+    }
+}
+
+/// Sends a rendered lease to the route that takes it.
+pub async fn deliver(
+    client: &Client,
+    lease: &Lease,
+    output: &Output,
+) -> Result<Completion, ClientError> {
+    if output.pass {
+        client
+            .complete_sums(lease.lease_id, output.bytes.clone())
+            .await
+    } else {
+        client.complete(lease.lease_id, output.bytes.clone()).await
+    }
+}
