@@ -279,7 +279,7 @@ impl BinBox {
         2.0 * (x * y + y * z + z * x)
     }
 
-    fn to_aabb(&self) -> Aabb {
+    fn aabb(&self) -> Aabb {
         let b = &self.0;
         Aabb {
             min: DVec3::new(b[0], b[1], b[2]),
@@ -446,7 +446,7 @@ impl Builder<'_> {
         for b in bins.bounds[axis][bin..nbins].iter().rev() {
             right.grow(b);
         }
-        let (left, right) = (left.to_aabb(), right.to_aabb());
+        let (left, right) = (left.aabb(), right.aabb());
         let split_cost =
             TRAVERSAL_COST + INTERSECT_COST * cost / bounds.surface_area().max(f64::MIN_POSITIVE);
         let leaf_cost = INTERSECT_COST * self.blocks(prims.len());
