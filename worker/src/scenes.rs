@@ -118,3 +118,30 @@ async fn load(client: &Client, job_id: u64) -> Result<Arc<Scene>, LoadError> {
     );
     Ok(Arc::new(scene))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn an_inserted_scene_is_served_without_fetching_anything() {
+        let text = r#"<scene><camera><fov v="0.9"/><near_clip v="0.1"/><far_clip v="100"/>
+            <position x="0" y="0" z="10"/><orientation a="0" x="0" y="1" z="0"/>
+            </camera><background_color r="0" g="0" b="0"/><refractive_index v="1"/></scene>"#;
+        let desc = SceneDescription::parse(text, "t.scene").unwrap();
+        let assets = MemoryAssets {
+            files: HashMap::new(),
+        };
+        let scene = Arc::new(Scene::build(&desc, "t.scene", &assets).unwrap());
+        let cache = SceneCache::new();
+        cache.insert(7, scene.clone());
+        // Nothing listens on the discard port: any fetch would fail.
+        let client = Client::new("http://127.0.0.1:9", None).unwrap();
+        let got = cache.get(&client, 7).await.unwrap();
+        assert!(Arc::ptr_eq(&got, &scene));
+        assert!(matches!(
+            cache.get(&client, 8).await,
+            Err(LoadError::Fetch(_))
+        ));
+    }
+}

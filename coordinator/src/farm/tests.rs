@@ -688,3 +688,44 @@ fn a_failed_lease_write_leaves_no_phantom_lease_for_the_straggler_search() {
     assert_eq!(copy.tile, slow.tile);
     assert_ne!(copy.lease_id, slow.lease_id);
 }
+
+/// A scene that builds: a camera and nothing else.
+fn empty_scene() -> Scene {
+    let text = r#"<scene><camera><fov v="0.9"/><near_clip v="0.1"/><far_clip v="100"/>
+        <position x="0" y="0" z="10"/><orientation a="0" x="0" y="1" z="0"/>
+        </camera><background_color r="0" g="0" b="0"/><refractive_index v="1"/></scene>"#;
+    let desc = tracer_core::scene::SceneDescription::parse(text, "t.scene").unwrap();
+    let assets = tracer_core::MemoryAssets {
+        files: Default::default(),
+    };
+    Scene::build(&desc, "t.scene", &assets).unwrap()
+}
+
+#[test]
+fn a_built_scene_reaches_the_sink_with_its_job_id_before_any_lease() {
+    let f = fixture(FarmConfig::default());
+    assert!(!f.farm.wants_built_scenes());
+    // Without a sink a scene handed in is only dropped.
+    let a = f
+        .farm
+        .submit_built(new_job("a"), Some(empty_scene()))
+        .unwrap();
+    let got: Arc<Mutex<Vec<(u64, u32)>>> = Arc::default();
+    {
+        let (got, farm) = (got.clone(), Arc::downgrade(&f.farm));
+        f.farm.share_built_scenes(move |id, scene| {
+            // Called under the farm's lock: no lease of the job can have been granted.
+            let farm = farm.upgrade().unwrap();
+            assert!(farm.state.try_lock().is_err(), "the farm's lock is held");
+            got.lock().unwrap().push((id, scene.frame_count()));
+        });
+    }
+    assert!(f.farm.wants_built_scenes());
+    let b = f
+        .farm
+        .submit_built(new_job("b"), Some(empty_scene()))
+        .unwrap();
+    f.farm.submit(new_job("c")).unwrap();
+    assert_eq!(*got.lock().unwrap(), [(b.id, 1)]);
+    assert_ne!(a.id, b.id);
+}
