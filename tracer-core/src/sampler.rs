@@ -155,10 +155,11 @@ pub enum SampleOrder {
 /// pass over the first samples of a large `spp_max` only orders what it renders.
 ///
 /// Strata are numbered along a Morton curve of the enclosing power-of-two grid whose leading
-/// bits are the coarsest cells; sample k takes the code `reverse(k) XOR mask`. A prefix of
-/// 2^j samples then puts exactly one sample in each of the 2^j coarsest cells (the bit
-/// reversal), and the per-pixel mask moves where in each cell it lands, so neighbouring
-/// pixels do not share one pattern. Codes outside a grid that is not a power of two in some
+/// bits are the coarsest cells; sample k takes the code `owen(reverse(k))`. A prefix of 2^j
+/// samples then puts exactly one sample in each of the 2^j coarsest cells (the bit reversal),
+/// and the per-pixel nested (Owen) scramble, which flips each bit by a hash of the bits above
+/// it, puts each cell's sample at its own place in the cell. (A plain XOR mask would put every
+/// sample of a prefix at the same place in its cell: a regular grid, measurably noisier.) Codes outside a grid that is not a power of two in some
 /// direction are skipped; its prefixes stay nearly as well spread.
 pub fn progressive_strata(
     seed: u64,
@@ -175,16 +176,12 @@ pub fn progressive_strata(
         rows.next_power_of_two().trailing_zeros(),
     );
     let bits = bx + by;
-    let mask = if bits == 0 {
-        0
-    } else {
-        mix(mix(seed ^ 0x2545f4914f6cdd1d) ^ (((y as u64) << 32) | x as u64)) & ((1u64 << bits) - 1)
-    };
+    let pixel_seed = mix(mix(seed ^ 0x2545f4914f6cdd1d) ^ (((y as u64) << 32) | x as u64));
     for k in 0..1u64 << bits {
         let code = if bits == 0 {
             0
         } else {
-            (k.reverse_bits() >> (64 - bits)) ^ mask
+            owen(k.reverse_bits() >> (64 - bits), bits, pixel_seed)
         };
         let (cx, cy) = morton_decode(code, bx, by);
         if cx < cols && cy < rows {
@@ -194,6 +191,19 @@ pub fn progressive_strata(
             }
         }
     }
+}
+
+/// Nested uniform (Owen) scrambling of a `bits`-bit code: bit i is flipped by a hash of the
+/// code's bits above it, so the map is a bijection that keeps every prefix of leading bits
+/// a bijection too.
+fn owen(code: u64, bits: u32, seed: u64) -> u64 {
+    let mut out = code;
+    for i in 0..bits {
+        let above = code >> (i + 1);
+        let level = (bits - i) as u64;
+        out ^= (mix(seed ^ mix(above ^ (level << 58))) & 1) << i;
+    }
+    out
 }
 
 /// Splits a Morton code of a `2^bx × 2^by` grid whose most significant bits are the coarsest

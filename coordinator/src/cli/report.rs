@@ -54,6 +54,10 @@ pub struct ReportArgs {
     /// Tile edge in pixels.
     #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
     pub tile_size: u32,
+    /// Also render progressive jobs with this noise threshold, one per uniform run, each with
+    /// that run's wall time as its time limit: adaptive against uniform at equal time.
+    #[arg(long, value_name = "X")]
+    pub adaptive: Option<f64>,
 }
 
 pub fn run(args: ReportArgs) -> ExitCode {
@@ -154,18 +158,55 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
                     adaptive: None,
                 };
                 match render_through(&farm, &args.scene, spec).await {
-                    Ok(timed) => out.push((spp, timed)),
+                    Ok((image, seconds, _)) => out.push((spp, (image, seconds), None)),
                     Err(e) => {
                         result = Err(e);
                         break;
                     }
                 }
             }
+            // The same wall time, spent where the error estimate says it is needed.
+            let uniform: Vec<f64> = out.iter().map(|(_, (_, s), _)| *s).collect();
+            for (&spp, &seconds) in args.spp.iter().zip(&uniform) {
+                let Some(threshold) = args.adaptive.filter(|_| result.is_ok()) else {
+                    break;
+                };
+                let spec = JobSpec {
+                    name: None,
+                    render: settings.clone(),
+                    frames: None,
+                    tile_size: args.tile_size,
+                    adaptive: Some(protocol::AdaptiveSpec {
+                        noise_threshold: threshold,
+                        spp_min: 2,
+                        spp_max: 4 * args.spp.iter().max().copied().unwrap_or(1).max(2),
+                        time_limit_s: Some(seconds),
+                    }),
+                };
+                match render_through(&farm, &args.scene, spec).await {
+                    Ok((image, seconds, info)) => {
+                        let mean = info.spp_mean.unwrap_or(0.0);
+                        out.push((spp, (image, seconds), Some(mean)));
+                    }
+                    Err(e) => result = Err(e),
+                }
+            }
             farm.shutdown().await;
             result.map(|()| out)
         })?;
-        for (spp, (image, seconds)) in measured {
-            record(measure(&config, spp, seconds, &image, &reference).map_err(Failure::failed)?);
+        for (spp, (image, seconds), adaptive) in measured {
+            let row = match adaptive {
+                None => measure(&config, spp, seconds, &image, &reference),
+                // Labelled by the uniform run it matches in time; spp is its mean.
+                Some(mean) => measure(
+                    &format!("{config}, adaptive {}", args.adaptive.unwrap_or_default()),
+                    mean.round() as u32,
+                    seconds,
+                    &image,
+                    &reference,
+                ),
+            };
+            record(row.map_err(Failure::failed)?);
         }
     }
 
@@ -178,8 +219,10 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
             "\"farm: N workers\" renders through the embedded farm (a loopback coordinator and \
              N in-process workers sharing {threads} render thread(s), {} px tiles): seconds run from \
              submitting the scene and its assets over HTTP to holding the finished PNG. \
-             \"in-process\" is the tracer alone on the same threads. Every image, the reference \
-             included, is compared as the 8-bit PNG a user gets.",
+             \"in-process\" is the tracer alone on the same threads. \"adaptive X\" rows are \
+             progressive jobs (noise threshold X, 2..4x the largest spp) whose time limit is the \
+             wall time of the uniform run of the same position: their spp is the mean. Every \
+             image, the reference included, is compared as the 8-bit PNG a user gets.",
             args.tile_size
         ),
     };
@@ -192,12 +235,12 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
 }
 
 /// Submits one job to the farm, waits for it and returns the decoded image with the wall time
-/// from submission to download.
+/// from submission to download, and the finished job.
 async fn render_through(
     farm: &EmbeddedFarm,
     scene: &std::path::Path,
     spec: JobSpec,
-) -> Result<(Image, f64), Failure> {
+) -> Result<(Image, f64, protocol::JobInfo), Failure> {
     let submission = collect_submission(scene, spec)?;
     let client = farm.client();
     let started = Instant::now();
@@ -220,5 +263,5 @@ async fn render_through(
     let png = client.image(job.id).await.map_err(describe)?;
     let seconds = started.elapsed().as_secs_f64();
     let image = Image::from_png_bytes(&png).map_err(Failure::failed)?;
-    Ok((image, seconds))
+    Ok((image, seconds, finished))
 }
