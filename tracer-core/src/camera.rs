@@ -218,7 +218,6 @@ impl<'a> EyeRays<'a> {
         Some((self.camera.position, planes))
     }
 
-
     /// The strata of pixel (x, y)'s first `limit` samples under `order` into `out` (`out[k]`
     /// is sample k's stratum); left empty for the grid order, where sample k takes stratum k.
     pub fn strata_order(&self, order: SampleOrder, x: u32, y: u32, limit: u32, out: &mut Vec<u32>) {
