@@ -80,24 +80,41 @@ pub fn caustic_map(scene: &Scene, settings: &RenderSettings) -> Option<Arc<Caust
         seed: settings.seed,
         filter: settings.texture_filter,
     };
-    // Held while building, so that concurrent renderers wait for one map instead of each
-    // building their own. A panic mid-build leaves the slot as it was.
-    let mut slot = scene
-        .caustic_cache
-        .0
-        .lock()
-        .unwrap_or_else(|poisoned| poisoned.into_inner());
-    let map = match &*slot {
-        Some((k, map)) if *k == key => map.clone(),
-        _ => {
-            let map = Arc::new(CausticMap::build(
+    let cached = |slot: &Option<(MapKey, Arc<CausticMap>)>| match slot {
+        Some((k, map)) if *k == key => Some(map.clone()),
+        _ => None,
+    };
+    let lock = || {
+        scene
+            .caustic_cache
+            .0
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
+    };
+    let found = cached(&lock());
+    let map = match found {
+        Some(map) => map,
+        None => {
+            // Built without the lock held. Renderers are made on rayon threads, and a thread
+            // that waits inside the build's parallel work may be handed another renderer's
+            // creation: had the lock been held, that one would wait for a lock held lower on
+            // its own stack, for ever (the embedded farm's pull loops share one pool). Two
+            // renderers that start together may so build the same map twice; the first one
+            // stored is kept, and both are equal (the map depends on the key alone).
+            let built = Arc::new(CausticMap::build(
                 scene,
                 &params,
                 settings.seed,
                 settings.texture_filter,
             ));
-            *slot = Some((key, map.clone()));
-            map
+            let mut slot = lock();
+            match cached(&slot) {
+                Some(map) => map,
+                None => {
+                    *slot = Some((key, built.clone()));
+                    built
+                }
+            }
         }
     };
     (!map.is_empty()).then_some(map)
