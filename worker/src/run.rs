@@ -220,15 +220,9 @@ impl Worker {
                 return;
             }
             Err(LoadError::Fetch(error)) => {
-                // Asking for work again answers this same lease, so nothing is lost.
                 tracing::warn!("{tag}: {error}");
-                tokio::select! {
-                    _ = tokio::time::sleep(backoff.next_delay()) => {}
-                    _ = shutdown.wait() => {}
-                }
-                if shutdown.is_set() {
-                    self.hand_back(&lease, &tag, stats).await;
-                }
+                self.retry_later(&lease, &tag, shutdown, stats, backoff)
+                    .await;
                 return;
             }
         };
@@ -241,15 +235,9 @@ impl Worker {
                 return;
             }
             Err(e) => {
-                // Asking for work again answers this same lease, so nothing is lost.
                 tracing::warn!("{tag}: fetching the pass's sums failed: {e}");
-                tokio::select! {
-                    _ = tokio::time::sleep(backoff.next_delay()) => {}
-                    _ = shutdown.wait() => {}
-                }
-                if shutdown.is_set() {
-                    self.hand_back(&lease, &tag, stats).await;
-                }
+                self.retry_later(&lease, &tag, shutdown, stats, backoff)
+                    .await;
                 return;
             }
         };
@@ -358,6 +346,26 @@ impl Worker {
         let report = FailureReport { error, scene };
         if let Err(e) = self.client.fail(lease.lease_id, &report).await {
             tracing::warn!("{tag}: could not report the failure: {e}");
+        }
+    }
+
+    /// After a transient failure before rendering: waits out the backoff (or a shutdown), and
+    /// hands the lease back if shutting down. Otherwise asking for work again answers this same
+    /// lease, so nothing is lost.
+    async fn retry_later(
+        &self,
+        lease: &Lease,
+        tag: &str,
+        shutdown: &mut Shutdown,
+        stats: &mut WorkerStats,
+        backoff: &mut Backoff,
+    ) {
+        tokio::select! {
+            _ = tokio::time::sleep(backoff.next_delay()) => {}
+            _ = shutdown.wait() => {}
+        }
+        if shutdown.is_set() {
+            self.hand_back(lease, tag, stats).await;
         }
     }
 
