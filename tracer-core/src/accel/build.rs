@@ -4,7 +4,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::bvh::{round_down, round_up, Bvh, Node, QNode, MAX_DEPTH, NO_CHILD, WIDTH};
+use super::bvh::{round_down, round_up, Bvh, Node, MAX_DEPTH, NO_CHILD, WIDTH};
 use super::memory::with_capacity_huge;
 use crate::geometry::Aabb;
 
@@ -96,138 +96,13 @@ impl Bvh {
                 pack_node(&[leaf], &mut nodes);
             }
         }
-        let qnodes = quantise_all(&nodes);
         Bvh {
             nodes,
-            qnodes,
             order,
             bounds: Some(root_bounds),
             depth,
         }
     }
-}
-
-/// Every node quantised, in the same order; empty if any cannot be.
-fn quantise_all(nodes: &[Node]) -> Vec<QNode> {
-    let mut out = with_capacity_huge(nodes.len());
-    // A zero exponent field (never a grid step) marks a node that could not be quantised.
-    let failed = QNode {
-        exp: [0; 3],
-        ..QNode::EMPTY
-    };
-    nodes
-        .par_iter()
-        .map(|n| quantise(n).unwrap_or(failed))
-        .collect_into_vec(&mut out);
-    if out.par_iter().any(|q| q.exp[0] == 0) {
-        return Vec::new();
-    }
-    out
-}
-
-impl QNode {
-    const EMPTY: QNode = QNode {
-        origin: [0.0; 3],
-        exp: [127; 3],
-        valid: 0,
-        // Unused slots: minimum above maximum (and masked out by `valid` anyway).
-        q: [
-            [255; WIDTH],
-            [0; WIDTH],
-            [255; WIDTH],
-            [0; WIDTH],
-            [255; WIDTH],
-            [0; WIDTH],
-        ],
-        index: [NO_CHILD; WIDTH],
-        count: [0; WIDTH],
-    };
-}
-
-/// `node` with each used child's box rounded outward to a 256-plane grid per axis (see
-/// [`QNode`]), or None where a used child's box is not finite or the node is too large for
-/// the exponent range kept.
-pub(super) fn quantise(node: &Node) -> Option<QNode> {
-    let mut out = QNode {
-        index: node.index,
-        count: node.count,
-        ..QNode::EMPTY
-    };
-    let used: Vec<usize> = (0..WIDTH).filter(|&c| node.index[c] != NO_CHILD).collect();
-    for &c in &used {
-        out.valid |= 1 << c;
-    }
-    for axis in 0..3 {
-        let (mins, maxs) = (&node.bounds[2 * axis], &node.bounds[2 * axis + 1]);
-        let lo = used
-            .iter()
-            .map(|&c| mins[c] as f64)
-            .fold(f64::INFINITY, f64::min);
-        let hi = used
-            .iter()
-            .map(|&c| maxs[c] as f64)
-            .fold(f64::NEG_INFINITY, f64::max);
-        if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
-            return None;
-        }
-        // The finest step whose grid, from a multiple of the step at or below `lo`, reaches
-        // `hi` in 255 steps with every plane an exact f32 (at most 24 significant bits).
-        // All of this is exact in f64: powers of two times integers below 2^25.
-        let mut e = if hi > lo {
-            ((hi - lo) / 255.0).log2().floor() as i32
-        } else {
-            -126
-        };
-        e = e.max(-126);
-        let (origin, step) = loop {
-            if e > 100 {
-                return None;
-            }
-            let step = (e as f64).exp2();
-            let k = (lo / step).floor();
-            if k.abs() + 255.0 <= (1u32 << 24) as f64 && (k + 255.0) * step >= hi {
-                break (k * step, step);
-            }
-            e += 1;
-        };
-        out.origin[axis] = origin as f32;
-        out.exp[axis] = (e + 127) as u8;
-        let plane = |q: f64| origin + q * step;
-        for &c in &used {
-            let (min, max) = (mins[c] as f64, maxs[c] as f64);
-            // The quotients may round; the loops settle on the exact outward planes.
-            let mut q0 = ((min - origin) / step).floor().clamp(0.0, 255.0);
-            while q0 > 0.0 && plane(q0) > min {
-                q0 -= 1.0;
-            }
-            let mut q1 = ((max - origin) / step).ceil().clamp(0.0, 255.0);
-            while q1 < 255.0 && plane(q1) < max {
-                q1 += 1.0;
-            }
-            out.q[2 * axis][c] = q0 as u8;
-            out.q[2 * axis + 1][c] = q1 as u8;
-        }
-    }
-    Some(out)
-}
-
-/// The f32 box planes a quantised node stands for, computed as the traversal computes them
-/// (`q · 2^e + origin` in f32), as a [`Node`].
-#[cfg(test)]
-pub(super) fn dequantised(q: &QNode) -> Node {
-    let mut node = Node {
-        bounds: [[0.0; WIDTH]; 6],
-        index: q.index,
-        count: q.count,
-    };
-    for row in 0..6 {
-        let axis = row / 2;
-        let step = f32::from_bits((q.exp[axis] as u32) << 23);
-        for c in 0..WIDTH {
-            node.bounds[row][c] = q.q[row][c] as f32 * step + q.origin[axis];
-        }
-    }
-    node
 }
 
 /// Marks a padding slot in the `order` of [`Bvh::build_aligned`].
