@@ -1,4 +1,5 @@
-//! Building a [`Bvh`]: binned SAH over the primitives' bounds, large subtrees in parallel,
+//! Building a [`Bvh`]: binned SAH over the primitives' bounds (rounded outward to f32, binned
+//! with f32 SIMD min/max, the references partitioned in place), large subtrees in parallel,
 //! then the binary tree collapsed into `WIDTH`-wide nodes with outward-rounded f32 boxes.
 
 use glam::DVec3;
@@ -59,26 +60,43 @@ impl Bvh {
     /// padded with [`PADDING`] slots, so that an owner can keep its primitives in blocks of
     /// `align` with no leaf straddling two blocks it does not need.
     pub fn build_aligned(bounds: &[Aabb], align: usize) -> Bvh {
-        let mut order: Vec<u32> = (0..bounds.len() as u32).collect();
         if bounds.is_empty() {
             return Bvh::default();
         }
+        assert!(bounds.len() < MAX_PRIMS, "too many primitives for one BVH");
+        let mut refs = Vec::with_capacity(bounds.len());
+        bounds
+            .par_iter()
+            .enumerate()
+            .map(|(i, b)| PrimRef::of(b, i as u32))
+            .collect_into_vec(&mut refs);
         let (root_bounds, root_centroids) = bounds
             .par_iter()
+            .zip(&refs)
             .fold(
-                || (Aabb::EMPTY, Aabb::EMPTY),
-                |(b, c), pb| (b.union(*pb), c.grow(pb.centroid())),
+                || (Aabb::EMPTY, Box4::EMPTY),
+                |(b, mut c), (pb, r)| {
+                    c.grow_point(&r.0.centroid2());
+                    (b.union(*pb), c)
+                },
             )
             .reduce(
-                || (Aabb::EMPTY, Aabb::EMPTY),
-                |(b0, c0), (b1, c1)| (b0.union(b1), c0.union(c1)),
+                || (Aabb::EMPTY, Box4::EMPTY),
+                |(b0, mut c0), (b1, c1)| {
+                    c0.grow(&c1);
+                    (b0.union(b1), c0)
+                },
             );
         let builder = Builder {
-            bounds,
             align,
             align_shift: align.is_power_of_two().then(|| align.trailing_zeros()),
         };
-        let mut tree = builder.build(&mut order, 0, 0, root_bounds, root_centroids);
+        let mut tree = builder.build(&mut refs, 0, 0, root_bounds, root_centroids);
+        let mut order = Vec::with_capacity(refs.len());
+        refs.par_iter()
+            .map(PrimRef::id)
+            .collect_into_vec(&mut order);
+        drop(refs);
         if align > 1 {
             let mut aligned = Vec::with_capacity(order.len() + order.len() / 2);
             align_leaves(&mut tree, &order, align, &mut aligned);
@@ -209,11 +227,7 @@ fn pack_node(slots: &[&Tree], nodes: &mut Vec<Node>) -> u32 {
     index as u32
 }
 
-struct Builder<'a> {
-    /// The primitives' bounds. Centroids are worked out from them where needed (the same
-    /// values): an array of them cost 24 bytes per primitive, 240 MB for 10M triangles, and
-    /// the time the kernel took to hand out and zero those pages.
-    bounds: &'a [Aabb],
+struct Builder {
     /// The owner tests primitives in blocks of this many at the cost of one.
     align: usize,
     /// log2(`align`) where `align` is a power of two.
@@ -223,8 +237,8 @@ struct Builder<'a> {
 /// Primitives whose centroid falls in a bin below `bin` on `axis` go to the left child.
 struct Split {
     axis: usize,
-    lo: f64,
-    scale: f64,
+    lo: [f32; 4],
+    scale: [f32; 4],
     bins: usize,
     bin: usize,
     /// The children's bounds, from the bins.
@@ -234,56 +248,127 @@ struct Split {
 
 impl Split {
     #[inline(always)]
-    fn goes_left(&self, centroid: f64) -> bool {
-        bin_of(centroid, self.lo, self.scale, self.bins) < self.bin
+    fn goes_left(&self, centroid2: &[f32; 4]) -> bool {
+        Box4::bins_of(centroid2, &self.lo, &self.scale, (self.bins - 1) as f32)[self.axis]
+            < self.bin as u32
     }
 }
 
-/// A box as (min x, y, z, +∞, −max x, y, z, +∞): growing it is one lane-wise minimum over
-/// eight lanes, which compiles to a few SIMD min instructions (the six scalar compare-and-
-/// selects it replaces were most of the binning's time). Negation is exact, so the maxima
-/// read back are the same f64 values.
+/// A box in f32 as four lanes of minima and four of maxima (the fourth lane unused): a
+/// primitive's bounds rounded outward, a bin, or the bounds of centroids. Growing one is a
+/// SIMD min and max; in f64 (eight lanes, twice the bytes) binning cost half again as much.
 #[derive(Clone, Copy)]
-#[repr(C, align(64))]
-struct BinBox([f64; 8]);
+#[repr(C, align(32))]
+struct Box4 {
+    lo: [f32; 4],
+    hi: [f32; 4],
+}
 
-const EMPTY_BIN: BinBox = BinBox([f64::INFINITY; 8]);
+/// A primitive's bounds rounded outward to f32 (they contain the f64 bounds, so every box
+/// made from them holds its primitives), and its index in the unused lane. The builder
+/// partitions these themselves, not indices into them, so binning reads them in order
+/// instead of one cache miss per primitive. Centroids are worked out from them where needed
+/// (an array of them cost bytes per primitive and the kernel's time to hand out pages).
+#[derive(Clone, Copy)]
+struct PrimRef(Box4);
 
-impl BinBox {
-    #[inline(always)]
-    fn of(b: &Aabb) -> BinBox {
-        let inf = f64::INFINITY;
-        BinBox([
-            b.min.x, b.min.y, b.min.z, inf, -b.max.x, -b.max.y, -b.max.z, inf,
-        ])
+/// Indices are kept as normal f32 bit patterns (offset by the smallest normal's bits), so
+/// that no arithmetic on the unused lane meets a subnormal, which can be slow.
+const ID_BIAS: u32 = 0x0080_0000;
+/// The most primitives a BVH takes: indices stay below the bits of infinity.
+const MAX_PRIMS: usize = (0x7F80_0000 - ID_BIAS) as usize;
+
+impl PrimRef {
+    fn of(b: &Aabb, id: u32) -> PrimRef {
+        let mut r = Box4::of(b);
+        r.lo[3] = f32::from_bits(id + ID_BIAS);
+        PrimRef(r)
     }
 
-    /// `self` grown by `b`. Like `f64::min` (and the former scalar code, tie for tie), a NaN
-    /// in `b` leaves `self` as it was.
+    fn id(&self) -> u32 {
+        self.0.lo[3].to_bits() - ID_BIAS
+    }
+}
+
+impl Box4 {
+    const EMPTY: Box4 = Box4 {
+        lo: [f32::INFINITY; 4],
+        hi: [f32::NEG_INFINITY; 4],
+    };
+
+    fn of(b: &Aabb) -> Box4 {
+        Box4 {
+            lo: [
+                round_down(b.min.x),
+                round_down(b.min.y),
+                round_down(b.min.z),
+                0.0,
+            ],
+            hi: [round_up(b.max.x), round_up(b.max.y), round_up(b.max.z), 0.0],
+        }
+    }
+
+    /// Twice the centroid (the bins' scale takes the half); the same f32 values wherever
+    /// they are worked out, so binning and partitioning agree.
+    /// The fourth lane is 0: in a [`PrimRef`] it holds an index, and differences of those
+    /// bit patterns would be subnormal (a slow path on the CPU).
     #[inline(always)]
-    fn grow(&mut self, b: &BinBox) {
-        for k in 0..8 {
-            self.0[k] = if b.0[k] < self.0[k] {
-                b.0[k]
+    fn centroid2(&self) -> [f32; 4] {
+        std::array::from_fn(|k| if k < 3 { self.lo[k] + self.hi[k] } else { 0.0 })
+    }
+
+    /// The bins of a doubled centroid on each axis (the fourth lane unused): truncated and
+    /// clamped to `0..=last`, NaN to 0.
+    #[inline(always)]
+    fn bins_of(c: &[f32; 4], lo: &[f32; 4], scale: &[f32; 4], last: f32) -> [u32; 4] {
+        std::array::from_fn(|k| {
+            let x = (c[k] - lo[k]) * scale[k];
+            // `x > 0` is false for NaN.
+            let x = if x > 0.0 { x } else { 0.0 };
+            let x = if x < last { x } else { last };
+            // SAFETY: `x` is finite and within 0..=last (at most 15): no conversion
+            // overflows. (`as` would add a saturating check per lane.)
+            unsafe { x.to_int_unchecked::<i32>() as u32 }
+        })
+    }
+
+    /// `self` grown by `b`. A NaN in `b` leaves `self` as it was (as `f64::min` did).
+    #[inline(always)]
+    fn grow(&mut self, b: &Box4) {
+        for k in 0..4 {
+            self.lo[k] = if b.lo[k] < self.lo[k] {
+                b.lo[k]
             } else {
-                self.0[k]
+                self.lo[k]
+            };
+            self.hi[k] = if b.hi[k] > self.hi[k] {
+                b.hi[k]
+            } else {
+                self.hi[k]
             };
         }
+    }
+
+    #[inline(always)]
+    fn grow_point(&mut self, p: &[f32; 4]) {
+        self.grow(&Box4 { lo: *p, hi: *p });
     }
 
     /// Surface area of a non-empty box (the sweeps only measure boxes holding primitives).
     #[inline(always)]
     fn area(&self) -> f64 {
-        let b = &self.0;
-        let (x, y, z) = (-b[4] - b[0], -b[5] - b[1], -b[6] - b[2]);
-        2.0 * (x * y + y * z + z * x)
+        let (x, y, z) = (
+            self.hi[0] - self.lo[0],
+            self.hi[1] - self.lo[1],
+            self.hi[2] - self.lo[2],
+        );
+        (2.0 * (x * y + y * z + z * x)) as f64
     }
 
     fn aabb(&self) -> Aabb {
-        let b = &self.0;
         Aabb {
-            min: DVec3::new(b[0], b[1], b[2]),
-            max: DVec3::new(-b[4], -b[5], -b[6]),
+            min: DVec3::new(self.lo[0] as f64, self.lo[1] as f64, self.lo[2] as f64),
+            max: DVec3::new(self.hi[0] as f64, self.hi[1] as f64, self.hi[2] as f64),
         }
     }
 }
@@ -291,19 +376,19 @@ impl BinBox {
 /// Per axis and bin: the union of the primitives' bounds and their number.
 #[derive(Clone)]
 struct Bins {
-    bounds: [[BinBox; BINS]; 3],
+    bounds: [[Box4; BINS]; 3],
     counts: [[u32; BINS]; 3],
 }
 
 impl Bins {
     fn empty() -> Bins {
         Bins {
-            bounds: [[EMPTY_BIN; BINS]; 3],
+            bounds: [[Box4::EMPTY; BINS]; 3],
             counts: [[0; BINS]; 3],
         }
     }
 
-    /// Exact (min and integer sums), so any grouping of the merges gives the same bins.
+    /// Exact (min, max and integer sums), so any grouping of the merges gives the same bins.
     fn merge(mut self, o: Bins) -> Bins {
         for axis in 0..3 {
             for bin in 0..BINS {
@@ -318,15 +403,15 @@ impl Bins {
 /// Nodes at least this large bin their primitives in parallel chunks.
 const PARALLEL_BINNING: usize = 16 * 1024;
 
-impl Builder<'_> {
+impl Builder {
     /// `bounds` and `centroid_bounds` are those of `prims`, found by the caller.
     fn build(
         &self,
-        prims: &mut [u32],
+        prims: &mut [PrimRef],
         first: usize,
         depth: usize,
         bounds: Aabb,
-        centroid_bounds: Aabb,
+        centroid_bounds: Box4,
     ) -> Tree {
         let leaf = Tree::Leaf {
             bounds,
@@ -368,7 +453,7 @@ impl Builder<'_> {
 
     /// Bins `prims` into `out` (empty on entry). Filled in place: returned by value, the
     /// 3 KiB of bins were copied once per node.
-    fn bin(&self, prims: &[u32], lo: DVec3, scale: DVec3, bins: usize, out: &mut Bins) {
+    fn bin(&self, prims: &[PrimRef], lo: [f32; 4], scale: [f32; 4], bins: usize, out: &mut Bins) {
         if prims.len() >= PARALLEL_BINNING {
             *out = prims
                 .par_chunks(PARALLEL_BINNING / 2)
@@ -380,40 +465,45 @@ impl Builder<'_> {
                 .reduce(Bins::empty, Bins::merge);
             return;
         }
-        for &p in prims {
-            let bounds = &self.bounds[p as usize];
-            let (c, b) = (bounds.centroid(), BinBox::of(bounds));
+        let last = (bins - 1) as f32;
+        for PrimRef(r) in prims {
+            let bin = Box4::bins_of(&r.centroid2(), &lo, &scale, last);
             for axis in 0..3 {
-                let bin = bin_of(c[axis], lo[axis], scale[axis], bins);
+                let bin = bin[axis] as usize;
                 out.counts[axis][bin] += 1;
-                out.bounds[axis][bin].grow(&b);
+                out.bounds[axis][bin].grow(r);
             }
         }
     }
 
     /// The cheapest binned SAH split over all three axes (binned in one pass), or None when
     /// a leaf is cheaper and small enough.
-    fn find_split(&self, prims: &[u32], bounds: Aabb, centroid_bounds: Aabb) -> Option<Split> {
-        let extent = centroid_bounds.extent();
-        let lo = centroid_bounds.min;
+    fn find_split(&self, prims: &[PrimRef], bounds: Aabb, centroid_bounds: Box4) -> Option<Split> {
+        let extent: [f32; 4] =
+            std::array::from_fn(|k| centroid_bounds.hi[k] - centroid_bounds.lo[k]);
+        let lo = centroid_bounds.lo;
         // Small nodes use fewer bins: as good a split for far less sweeping.
         let nbins = prims.len().clamp(2, BINS);
-        let per = |e: f64| if e > 0.0 { nbins as f64 / e } else { 0.0 };
-        let scale = DVec3::new(per(extent.x), per(extent.y), per(extent.z));
+        // A zero scale (no extent, or an infinite one) puts every centroid in bin 0.
+        let per = |e: f32| {
+            let s = nbins as f32 / e;
+            if e > 0.0 && s.is_finite() {
+                s
+            } else {
+                0.0
+            }
+        };
+        let scale = extent.map(per);
         let mut bins = Bins::empty();
         self.bin(prims, lo, scale, nbins, &mut bins);
         let mut best: Option<(f64, usize, usize)> = None;
         // Each suffix's box and count, from the right; reused across axes.
-        let mut right_box = [EMPTY_BIN; BINS];
+        let mut right_box = [Box4::EMPTY; BINS];
         let mut right_count = [0usize; BINS];
-        for axis in 0..3 {
-            // NaN extents are skipped too.
-            let usable = extent[axis] > 0.0;
-            if !usable {
-                continue;
-            }
+        // Axes without a usable extent (none, NaN or infinite) have a zero scale.
+        for (axis, _) in scale[..3].iter().enumerate().filter(|(_, &s)| s > 0.0) {
             let (boxes, counts) = (&bins.bounds[axis], &bins.counts[axis]);
-            let mut acc = EMPTY_BIN;
+            let mut acc = Box4::EMPTY;
             let mut count = 0;
             for i in (1..nbins).rev() {
                 acc.grow(&boxes[i]);
@@ -421,7 +511,7 @@ impl Builder<'_> {
                 right_box[i] = acc;
                 right_count[i] = count;
             }
-            let mut acc = EMPTY_BIN;
+            let mut acc = Box4::EMPTY;
             let mut count = 0;
             for split in 1..nbins {
                 acc.grow(&boxes[split - 1]);
@@ -439,7 +529,7 @@ impl Builder<'_> {
         let (cost, axis, bin) = best?;
         // The children's boxes, for the best split only.
         // (Grown in the sweeps' orders, so that even the sign of a zero comes out the same.)
-        let (mut left, mut right) = (EMPTY_BIN, EMPTY_BIN);
+        let (mut left, mut right) = (Box4::EMPTY, Box4::EMPTY);
         for b in &bins.bounds[axis][..bin] {
             left.grow(b);
         }
@@ -455,8 +545,8 @@ impl Builder<'_> {
         }
         Some(Split {
             axis,
-            lo: lo[axis],
-            scale: scale[axis],
+            lo,
+            scale,
             bins: nbins,
             bin,
             left,
@@ -483,28 +573,37 @@ impl Builder<'_> {
 
     /// In-place partition by `split`; returns the number of primitives going left and the
     /// centroid bounds of both sides.
-    fn partition(&self, prims: &mut [u32], split: &Split) -> (usize, Aabb, Aabb) {
-        let (mut left, mut right) = (Aabb::EMPTY, Aabb::EMPTY);
-        let mut i = 0;
-        for j in 0..prims.len() {
-            let c = self.bounds[prims[j] as usize].centroid();
-            if split.goes_left(c[split.axis]) {
-                left = left.grow(c);
-                prims.swap(i, j);
+    fn partition(&self, prims: &mut [PrimRef], split: &Split) -> (usize, Box4, Box4) {
+        // From both ends, swapping only misplaced pairs: half the moves of a one-sided pass,
+        // which count now that the references themselves move.
+        let (mut left, mut right) = (Box4::EMPTY, Box4::EMPTY);
+        let (mut i, mut j) = (0, prims.len());
+        loop {
+            while i < j {
+                let c = prims[i].0.centroid2();
+                if !split.goes_left(&c) {
+                    break;
+                }
+                left.grow_point(&c);
                 i += 1;
-            } else {
-                right = right.grow(c);
             }
+            while i < j {
+                let c = prims[j - 1].0.centroid2();
+                if split.goes_left(&c) {
+                    break;
+                }
+                right.grow_point(&c);
+                j -= 1;
+            }
+            if i == j {
+                return (i, left, right);
+            }
+            // prims[i] goes right and prims[j - 1] left.
+            prims.swap(i, j - 1);
         }
-        (i, left, right)
     }
 }
 
-fn prims_len(a: &[u32], b: &[u32]) -> usize {
+fn prims_len(a: &[PrimRef], b: &[PrimRef]) -> usize {
     a.len().min(b.len())
-}
-
-#[inline(always)]
-fn bin_of(c: f64, lo: f64, scale: f64, bins: usize) -> usize {
-    (((c - lo) * scale) as usize).min(bins - 1)
 }
