@@ -319,6 +319,27 @@ impl Box4 {
 
     /// The bins of a doubled centroid on each axis (the fourth lane unused): truncated and
     /// clamped to `0..=last`, NaN to 0.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn bins_of(c: &[f32; 4], lo: &[f32; 4], scale: &[f32; 4], last: f32) -> [u32; 4] {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE2 is part of the x86_64 baseline; the loads and the store move four
+        // f32s or i32s of arrays of four.
+        unsafe {
+            let x = _mm_mul_ps(
+                _mm_sub_ps(_mm_loadu_ps(c.as_ptr()), _mm_loadu_ps(lo.as_ptr())),
+                _mm_loadu_ps(scale.as_ptr()),
+            );
+            // Lane for lane the portable version's selects: `max` gives 0 for NaN (its
+            // second operand), `min` keeps `x` only when below `last`.
+            let x = _mm_min_ps(_mm_max_ps(x, _mm_setzero_ps()), _mm_set1_ps(last));
+            let mut out = [0u32; 4];
+            _mm_storeu_si128(out.as_mut_ptr().cast(), _mm_cvttps_epi32(x));
+            out
+        }
+    }
+
+    #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
     fn bins_of(c: &[f32; 4], lo: &[f32; 4], scale: &[f32; 4], last: f32) -> [u32; 4] {
         std::array::from_fn(|k| {
