@@ -628,3 +628,42 @@ impl Builder {
 fn prims_len(a: &[PrimRef], b: &[PrimRef]) -> usize {
     a.len().min(b.len())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bin_indices_truncate_clamp_and_send_nan_to_bin_zero() {
+        let lo = [1.0, -2.0, 0.5, 0.0];
+        let scale = [4.0, 0.5, 0.0, 0.0];
+        let last = 15.0;
+        let cases = [
+            ([1.0, -2.0, 0.5, 0.0], [0, 0, 0, 0]),
+            ([1.3, 5.9, 7.0, 0.0], [1, 3, 0, 0]),
+            ([4.74, 28.0, -1.0, 0.0], [14, 15, 0, 0]),
+            ([0.0, -1e30, f32::NAN, 0.0], [0, 0, 0, 0]),
+            ([f32::NAN, 1e30, f32::INFINITY, 0.0], [0, 15, 0, 0]),
+            ([f32::INFINITY, f32::NEG_INFINITY, 3.0, 0.0], [15, 0, 0, 0]),
+        ];
+        for (c, want) in cases {
+            assert_eq!(Box4::bins_of(&c, &lo, &scale, last), want, "{c:?}");
+        }
+    }
+
+    #[test]
+    fn references_keep_their_index_and_contain_their_bounds() {
+        let b = Aabb {
+            min: DVec3::new(0.1, -1e5 - 0.001, 1e-7),
+            max: DVec3::new(0.3, 1e30, 2e-7),
+        };
+        for id in [0, 1, 12345, MAX_PRIMS as u32 - 1] {
+            let r = PrimRef::of(&b, id);
+            assert_eq!(r.id(), id);
+            assert!(r.0.lo[3].is_normal());
+            let f = r.0.aabb();
+            assert!(f.min.cmple(b.min).all() && f.max.cmpge(b.max).all());
+            assert_eq!(r.0.centroid2()[3], 0.0);
+        }
+    }
+}
