@@ -67,39 +67,6 @@ impl TopLevel {
         &self,
         ray: &Ray,
         t_max: &mut f64,
-        leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
-    ) -> Option<bool> {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx") {
-            // SAFETY: the CPU has AVX.
-            return unsafe { self.walk_avx::<ANY>(ray, t_max, leaf) };
-        }
-        self.walk_with::<ANY, false>(ray, t_max, leaf)
-    }
-
-    /// [`TopLevel::walk`] compiled with AVX, whose node test takes the eight boxes at once
-    /// (the same single-precision operations lane by lane as the SSE test's two halves, so
-    /// the same boxes are entered).
-    ///
-    /// # Safety
-    /// The CPU must support AVX.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
-    unsafe fn walk_avx<const ANY: bool>(
-        &self,
-        ray: &Ray,
-        t_max: &mut f64,
-        leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
-    ) -> Option<bool> {
-        self.walk_with::<ANY, true>(ray, t_max, leaf)
-    }
-
-    /// The walk, with the AVX node test where `AVX` (only from [`TopLevel::walk_avx`]).
-    #[inline(always)]
-    fn walk_with<const ANY: bool, const AVX: bool>(
-        &self,
-        ray: &Ray,
-        t_max: &mut f64,
         mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
     ) -> Option<bool> {
         let r = SlabRay::new(ray)?;
@@ -112,14 +79,6 @@ impl TopLevel {
         let mut index = 0usize;
         loop {
             let node = &self.nodes[index];
-            #[cfg(target_arch = "x86_64")]
-            let (mask, dist) = if AVX {
-                // SAFETY: `AVX` is true only inside `walk_avx`, on a CPU with AVX.
-                unsafe { r.hit_avx(node, *t_max) }
-            } else {
-                r.hit(node, *t_max)
-            };
-            #[cfg(not(target_arch = "x86_64"))]
             let (mask, dist) = r.hit(node, *t_max);
             let mut leaves = mask & node.leaves;
             let mut inner = mask & !leaves;
@@ -357,52 +316,6 @@ impl SlabRay {
         (mask, dist)
     }
 
-    /// [`SlabRay::hit`] with the eight boxes in one AVX register. Not itself an AVX function
-    /// but always inlined, so that inside [`TopLevel::walk_avx`] its intrinsics inline too.
-    ///
-    /// # Safety
-    /// The CPU must support AVX.
-    #[cfg(target_arch = "x86_64")]
-    #[inline(always)]
-    #[allow(unused_unsafe)]
-    unsafe fn hit_avx(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
-        use std::arch::x86_64::*;
-        let mut dist = [0f32; WIDTH];
-        let b = &node.bounds;
-        let row = |i: usize| &b[i % 6];
-        // SAFETY: the caller guarantees AVX; the loads read rows of eight f32s, the store
-        // writes `dist`'s eight.
-        unsafe {
-            let t_far = _mm256_set1_ps(t_max as f32);
-            let plane = |r: &[f32; WIDTH], o: f32, inv: f32| {
-                _mm256_mul_ps(
-                    _mm256_sub_ps(_mm256_loadu_ps(r.as_ptr()), _mm256_set1_ps(o)),
-                    _mm256_set1_ps(inv),
-                )
-            };
-            let nx = plane(row(self.near[0]), self.o_near[0], self.inv[0]);
-            let ny = plane(row(self.near[1]), self.o_near[1], self.inv[1]);
-            let nz = plane(row(self.near[2]), self.o_near[2], self.inv[2]);
-            let fx = plane(row(self.far[0]), self.o_far[0], self.inv[0]);
-            let fy = plane(row(self.far[1]), self.o_far[1], self.inv[1]);
-            let fz = plane(row(self.far[2]), self.o_far[2], self.inv[2]);
-            let near = _mm256_max_ps(
-                _mm256_max_ps(nx, ny),
-                _mm256_max_ps(nz, _mm256_setzero_ps()),
-            );
-            let far = _mm256_min_ps(_mm256_min_ps(fx, fy), _mm256_min_ps(fz, t_far));
-            let near = _mm256_mul_ps(near, _mm256_set1_ps(SLAB_DOWN));
-            let far = _mm256_add_ps(
-                _mm256_mul_ps(far, _mm256_set1_ps(SLAB_UP)),
-                _mm256_set1_ps(SLAB_ABS),
-            );
-            // Ordered ≤, as SSE's `cmpleps`: false where either side is NaN.
-            let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32;
-            _mm256_storeu_ps(dist.as_mut_ptr(), near);
-            (mask, dist)
-        }
-    }
-
     #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
     fn hit(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
@@ -493,54 +406,6 @@ mod tests {
                         }
                     }
                 }
-            }
-        }
-    }
-
-    /// The AVX node test gives the SSE test's mask and distances, bit for bit.
-    #[cfg(target_arch = "x86_64")]
-    #[test]
-    fn the_avx_box_test_matches_the_sse_one() {
-        if !std::arch::is_x86_feature_detected!("avx") {
-            return;
-        }
-        let mut state = 3u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let prims: Vec<Aabb> = (0..200)
-            .map(|_| {
-                let c = DVec3::new(next(), next(), next()) * 20.0 - 10.0;
-                let e = DVec3::new(next(), next(), next());
-                Aabb {
-                    min: c - e,
-                    max: c + e,
-                }
-            })
-            .collect();
-        let top = TopLevel::new(&Bvh::build(&prims));
-        for i in 0..2000 {
-            let origin = DVec3::new(next(), next(), next()) * 30.0 - 15.0;
-            let mut dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
-            if i % 7 == 0 {
-                // Nearly parallel to a slab: a huge inverse.
-                dir.y = 1e-9;
-            }
-            let r = SlabRay::new(&Ray::new(origin, dir)).unwrap();
-            let t_max = if i % 2 == 0 {
-                f64::INFINITY
-            } else {
-                10.0 * next()
-            };
-            for node in &top.nodes {
-                let sse = r.hit(node, t_max);
-                // SAFETY: AVX was detected above.
-                let avx = unsafe { r.hit_avx(node, t_max) };
-                assert_eq!(sse.0, avx.0, "ray {i}");
-                assert_eq!(sse.1.map(f32::to_bits), avx.1.map(f32::to_bits), "ray {i}");
             }
         }
     }
