@@ -546,6 +546,11 @@ impl World {
     /// it, so rays in the open pay nothing. The answer is the same either way (a blocker is
     /// a blocker, whichever is found).
     pub fn occluded_by(&self, ray: &Ray, t_max: f64, cache: &mut ShadowCache) -> bool {
+        if self.objects.len() == 1 {
+            // The walk tests the one object directly: a remembered blocker would only test
+            // it twice where it does not block (dragon.scene's mesh: a traversal each).
+            return self.occluded(ray, t_max);
+        }
         let mut world_tri_ray = None;
         if let Some(slot) = cache.last {
             if self
