@@ -259,6 +259,13 @@ struct ModelTriangle {
     prim: u32,
 }
 
+/// What [`World::occluded_by`] remembers of a family of shadow rays: the object that blocked
+/// the last one, if it was blocked.
+#[derive(Clone, Debug, Default)]
+pub struct ShadowCache {
+    last: Option<u32>,
+}
+
 /// The closest intersection found along a ray.
 #[derive(Clone, Copy, Debug)]
 pub struct Hit {
@@ -530,6 +537,42 @@ impl World {
             self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
                 .is_some()
         })
+    }
+
+    /// [`World::occluded`] for one of a family of coherent shadow rays (one light's, from
+    /// one recursion level of a row's samples), whose last blocker `cache` remembers. That
+    /// object is tested first: where a pixel's samples and its neighbours' lie in one shadow,
+    /// the same object blocks most of their rays, and the walk is skipped. Lit rays forget
+    /// it, so rays in the open pay nothing. The answer is the same either way (a blocker is
+    /// a blocker, whichever is found).
+    pub fn occluded_by(&self, ray: &Ray, t_max: f64, cache: &mut ShadowCache) -> bool {
+        if self.objects.len() == 1 {
+            // The walk tests the one object directly: a remembered blocker would only test
+            // it twice where it does not block (dragon.scene's mesh: a traversal each).
+            return self.occluded(ray, t_max);
+        }
+        let mut world_tri_ray = None;
+        if let Some(slot) = cache.last {
+            if self
+                .hit_object::<true>(slot as usize, ray, 0.0, t_max, &mut world_tri_ray)
+                .is_some()
+            {
+                return true;
+            }
+        }
+        let mut t_limit = t_max;
+        let mut blocker = None;
+        let found = self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
+            let hit = self
+                .hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
+                .is_some();
+            if hit {
+                blocker = Some(slot as u32);
+            }
+            hit
+        });
+        cache.last = blocker;
+        found
     }
 
     /// The object in top-level slot `slot` against the ray, for t in (t_min, t_max): its
@@ -949,6 +992,64 @@ mod tests {
         assert!(hits > 1000, "{hits} hits");
         // The candidates are few: most objects lie outside a pixel's frustum.
         assert!(culled > (w * h) as usize * 60, "{culled} culled");
+    }
+
+    #[test]
+    fn a_remembered_blocker_gives_the_walks_answer() {
+        let mut state = 17u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let spheres = (0..30)
+            .map(|i| Sphere {
+                transform: Transform::new(
+                    DVec3::new(next() * 8.0 - 4.0, next() * 4.0, next() * 8.0 - 4.0),
+                    glam::DQuat::IDENTITY,
+                    DVec3::ONE,
+                ),
+                radius: 0.2 + next() * 0.5,
+                material: i,
+            })
+            .collect();
+        let triangles = (0..30)
+            .map(|_| {
+                let c = DVec3::new(next() * 8.0 - 4.0, next() * 4.0, next() * 8.0 - 4.0);
+                let mut corner = || c + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+                WorldTriangle {
+                    positions: [corner(), corner(), corner()],
+                    normals: [DVec3::Y; 3],
+                    tex_coords: [DVec2::ZERO; 3],
+                    materials: [0; 3],
+                }
+            })
+            .collect();
+        let world = World::with_movers(spheres, triangles, vec![], vec![], vec![], (0.0, 0.0));
+        let light = DVec3::new(1.0, 9.0, 2.0);
+        let mut cache = ShadowCache::default();
+        let (mut blocked, mut remembered) = (0, 0);
+        // Shadow rays from points of a floor walked in rows, as a row of pixels would.
+        for i in 0..4000 {
+            let p = DVec3::new(
+                (i % 80) as f64 / 10.0 - 4.0,
+                0.0,
+                (i / 80) as f64 / 6.0 - 4.0,
+            );
+            let target = light + DVec3::new(next(), next(), next()) - 0.5;
+            let to = target - p;
+            let ray = Ray::new(p, to.normalize());
+            // Some rays stop short of their blocker.
+            let t_max = to.length() * if i % 3 == 0 { 0.3 } else { 1.0 };
+            let had = cache.last.is_some();
+            let by = world.occluded_by(&ray, t_max, &mut cache);
+            assert_eq!(by, world.occluded(&ray, t_max), "ray {i}");
+            blocked += by as u32;
+            remembered += (had && by) as u32;
+        }
+        assert!(blocked > 400 && blocked < 3600, "{blocked} blocked");
+        assert!(remembered > 200, "{remembered} blocked after a blocked ray");
     }
 
     #[test]

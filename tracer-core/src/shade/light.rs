@@ -6,7 +6,7 @@ use glam::DVec3;
 use super::material::Surface;
 use super::optics::spawn_ray;
 use crate::sampler::{uniform_sphere, Rng};
-use crate::world::World;
+use crate::world::{ShadowCache, World};
 
 #[derive(Clone, Debug)]
 pub struct Light {
@@ -38,7 +38,9 @@ impl Light {
 
     /// This light's shadowed, attenuated diffuse term c·att·max(N·L, 0) at surface `s` with
     /// shading normal `n` (the caller multiplies by the material's diffuse colour), and
-    /// whether a shadow ray was traced for it (at `time`).
+    /// whether a shadow ray was traced for it (at `time`). `shadow` serves this light's
+    /// shadow rays (see [`World::occluded_by`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn direct(
         &self,
         world: &World,
@@ -47,6 +49,7 @@ impl Light {
         error_scale: f64,
         time: f64,
         rng: &mut Rng,
+        shadow: &mut ShadowCache,
     ) -> (DVec3, bool) {
         let p = s.position;
         let target = self.sample_point(rng);
@@ -60,9 +63,9 @@ impl Light {
         if cos.is_nan() || cos <= 0.0 {
             return (DVec3::ZERO, false);
         }
-        let shadow = spawn_ray(p, s.geometric_normal, l, error_scale, time);
-        let shadow_length = (target - shadow.origin).dot(l);
-        if world.occluded(&shadow, shadow_length) {
+        let shadow_ray = spawn_ray(p, s.geometric_normal, l, error_scale, time);
+        let shadow_length = (target - shadow_ray.origin).dot(l);
+        if world.occluded_by(&shadow_ray, shadow_length, shadow) {
             return (DVec3::ZERO, true);
         }
         let attenuation = 1.0 / self.falloff(distance);

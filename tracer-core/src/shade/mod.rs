@@ -28,7 +28,7 @@ pub use optics::{glossy, reflect, refract, schlick, spawn_ray, toward_viewer, Cr
 use crate::geometry::Ray;
 use crate::sampler::Rng;
 use crate::texture::Environment;
-use crate::world::{Hit, World};
+use crate::world::{Hit, ShadowCache, World};
 
 /// Radiance rays one pixel sample may trace at most. Dielectrics branch in two at every level,
 /// so a deep limit could otherwise ask for 2^depth rays; the course's depth 5 needs at most 31.
@@ -85,7 +85,14 @@ pub struct Tracer<'a> {
     /// The camera's medium, where every eye ray starts (built once: the stack is ~0.5 kB,
     /// so rays pass it by reference and only a refraction copies it).
     outer: std::rc::Rc<MediumStack>,
+    /// Each light's last shadow-ray blocker per recursion level (0, 1, deeper: hits at one
+    /// level of neighbouring samples lie close together, a level apart they do not), see
+    /// [`World::occluded_by`].
+    shadow: Vec<ShadowCache>,
 }
+
+/// Recursion levels with their own [`ShadowCache`] per light; deeper levels share the last.
+const SHADOW_LEVELS: usize = 3;
 
 impl<'a> Tracer<'a> {
     pub fn new(stage: Stage<'a>, max_depth: u32) -> Self {
@@ -95,6 +102,7 @@ impl<'a> Tracer<'a> {
             counts: RayCounts::default(),
             gloss_rng: Rng::for_sample(0, 0, 0, 0),
             outer: std::rc::Rc::new(MediumStack::new(stage.outer_ior)),
+            shadow: vec![ShadowCache::default(); stage.lights.len() * SHADOW_LEVELS],
         }
     }
 
@@ -191,8 +199,11 @@ impl<'a> Tracer<'a> {
             // Opaque: shade the side the ray sees (conventions §0.3).
             let n = toward_viewer(s.normal, d);
             let mut direct = stage.ambient * s.ambient;
-            for light in stage.lights {
-                let (light, traced) = light.direct(stage.world, &s, n, error_scale, ray.time, rng);
+            let shadow_level = (level as usize).min(SHADOW_LEVELS - 1);
+            for (i, light) in stage.lights.iter().enumerate() {
+                let cache = &mut self.shadow[i * SHADOW_LEVELS + shadow_level];
+                let (light, traced) =
+                    light.direct(stage.world, &s, n, error_scale, ray.time, rng, cache);
                 self.counts.shadow += traced as u32;
                 direct += light * s.diffuse;
             }

@@ -126,6 +126,7 @@ pub const SPAWN_OFFSET: f64 = 1e-9;
 /// moves at all moves by at least one ulp (as in Ray Tracing Gems ch. 6), so an offset smaller
 /// than the coordinate's spacing cannot vanish in the addition. The ray keeps its parent's
 /// `time`.
+#[inline(always)]
 pub fn spawn_ray(
     position: DVec3,
     geometric_normal: DVec3,

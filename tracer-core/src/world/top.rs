@@ -260,7 +260,8 @@ impl SlabRay {
         let mut ok = true;
         for a in 0..3 {
             let (o, inv) = (o[a], inv[a]);
-            ok &= o.abs() < F32_SAFE && inv.abs() < F32_SAFE && inv.abs() > 1.0 / F32_SAFE;
+            // `&` rather than `&&`: three compares, no branches.
+            ok &= (o.abs() < F32_SAFE) & (inv.abs() < F32_SAFE) & (inv.abs() > 1.0 / F32_SAFE);
             // Moved outward by 2^-22 of itself before rounding to nearest (at most 2^-24 of
             // itself), and by 1e-37 for f32's subnormal spacing: `lo` ≤ o ≤ `hi`, without
             // the branches of an exact directed rounding (the box is a few ulps looser).
