@@ -114,8 +114,13 @@ impl<'a> Renderer<'a> {
         if rect.width == 0 {
             return Some(tile);
         }
+        // One row per rayon job: a thread that runs out of work can steal any row that has
+        // not started, so a tile's end does not leave threads idle while one finishes a run of
+        // several rows (the embedded farm keeps several tiles on one pool and relies on it).
+        // A row is far more work than a job's overhead; the bytes are the same either way.
         tile.pixels
             .par_chunks_mut(3 * rect.width as usize)
+            .with_max_len(1)
             .enumerate()
             .for_each(|(row, out)| {
                 if !cancel.load(Ordering::Relaxed) {

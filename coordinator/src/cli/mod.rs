@@ -60,9 +60,10 @@ pub enum Command {
 pub struct SettingsArgs {
     #[command(flatten)]
     pub render: RenderArgs,
-    /// Tile edge in pixels.
-    #[arg(long, default_value_t = DEFAULT_TILE_SIZE)]
-    pub tile_size: u32,
+    /// Tile edge in pixels [default: 64; `coordinator render` chooses up to 256 for a
+    /// one-shot job, as long as every local pull loop gets at least four tiles a frame].
+    #[arg(long)]
+    pub tile_size: Option<u32>,
     /// A name for job listings [default: the scene's file name].
     #[arg(long)]
     pub name: Option<String>,
@@ -121,7 +122,7 @@ impl SettingsArgs {
             name: self.name.clone(),
             render,
             frames: self.render.frames,
-            tile_size: self.tile_size,
+            tile_size: self.tile_size.unwrap_or(DEFAULT_TILE_SIZE),
             adaptive: self.adaptive.to_spec()?,
         })
     }

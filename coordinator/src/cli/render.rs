@@ -12,7 +12,7 @@ use worker::available_cores;
 
 use super::submit::{collect_submission, describe, wait_for};
 use super::{Failure, SettingsArgs};
-use crate::embedded::{scratch_bytes, EmbeddedFarm};
+use crate::embedded::{local_tile_size, scratch_bytes, EmbeddedFarm};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -42,11 +42,14 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
     let start = Instant::now();
     // Everything the flags can get wrong is refused before the scene is read.
     let output = args.output.path_for(&args.scene).map_err(Failure::usage)?;
-    let spec = args.settings.to_spec()?;
+    let threads = args.threads.unwrap_or_else(available_cores).max(1);
+    let workers = args.workers.unwrap_or(1).clamp(1, threads);
+    let mut spec = args.settings.to_spec()?;
+    if args.settings.tile_size.is_none() {
+        spec.tile_size = local_tile_size(&spec, workers);
+    }
     let submission = collect_submission(&args.scene, spec)?;
     let quiet = args.output.quiet;
-    let threads = args.threads.unwrap_or_else(available_cores).max(1);
-    let workers = args.workers.unwrap_or(1);
     let runtime = super::runtime()?;
     runtime.block_on(async move {
         let submitted = submission.scene.len() as u64
