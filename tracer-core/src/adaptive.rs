@@ -54,18 +54,149 @@ pub fn luminance(r: f64, g: f64, b: f64) -> f64 {
     (r.min(1.0) + g.min(1.0) + b.min(1.0)) / 3.0
 }
 
-/// Cumulative samples per pixel after pass `pass` (counted from 0) of a render that starts
-/// with `spp_min` and stops at `spp_max`: each pass adds half of what was there (at least one
-/// sample), so passes grow geometrically and a time limit loses at most a third of the work.
-pub fn pass_target(pass: u32, spp_min: u32, spp_max: u32) -> u32 {
-    let mut n = spp_min.clamp(1, spp_max.max(1));
-    for _ in 0..pass {
-        if n >= spp_max {
-            break;
+/// The stopping rules a plan follows (the job spec's `adaptive`, less its time limit).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rules {
+    /// Relative error at which a block stops; 0 never stops a block on noise.
+    pub noise_threshold: f64,
+    pub spp_min: u32,
+    pub spp_max: u32,
+}
+
+/// Each pass adds this fraction of the samples the image already has (at least one per
+/// pixel): passes grow geometrically, so there are few of them, and a pass cut short by a
+/// time limit holds a bounded part of the work.
+const PASS_GROWTH: f64 = 0.5;
+
+/// Below this many samples a block's estimate is rough (two to seven samples per pixel
+/// compared in halves): a pass may at most double its samples; from here on, quadruple them.
+const TRUSTED_SPP: u32 = 8;
+
+/// A block's share of a pass never falls below this fraction of the mean share, so a block
+/// whose few samples happened to agree is still looked at again.
+const SHARE_FLOOR: f64 = 0.1;
+
+/// The samples per pixel each block has after the next pass (`counts` is what each has now;
+/// a block with `target == count` does not sample in it). A pure function of the sums, so
+/// every farm plans alike.
+///
+/// The first pass brings every block to `spp_min`. A block is done (keeps its count) at
+/// `spp_max`, or once it has `spp_min` samples and its relative error is at most the noise
+/// threshold. The other blocks share the pass's samples (half as many as the image has, at
+/// least one per pixel) in proportion to how much a sample lowers their error: a block's
+/// total goes towards c · σ_b / √L_b, where σ_b is its per-sample standard deviation
+/// (estimated error × √n) and L_b its mean luminance (floored at [`DARK_FLOOR`]). Samples
+/// ∝ σ minimise the absolute squared error (RMSE) for a given total, samples ∝ σ / L the
+/// relative one; √L weighs the two alike. c is the smallest that spends the pass's samples
+/// (water-filling: blocks already beyond their share get nothing). A block's total grows at
+/// most ×2 per pass below [`TRUSTED_SPP`] and ×4 from there (its estimate is noisy), never
+/// beyond `spp_max`, and with a threshold never beyond what its estimate says it needs to
+/// reach it (n · (error / threshold)², at least one more sample).
+pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
+    let spp_max = rules.spp_max.max(1);
+    let spp_min = rules.spp_min.clamp(1, spp_max);
+    let (w, h) = (sums.width, sums.height);
+    let cols = w.div_ceil(BLOCK);
+    let pixels = |b: usize| {
+        let (bx, by) = (b as u32 % cols, b as u32 / cols);
+        (BLOCK.min(w - bx * BLOCK) * BLOCK.min(h - by * BLOCK)) as f64
+    };
+    // (count, cap, share) of each block still sampling; None for a done one.
+    let mut open: Vec<Option<(u32, u32, f64)>> = Vec::with_capacity(counts.len());
+    let mut total = 0.0;
+    for (b, &n) in counts.iter().enumerate() {
+        total += pixels(b) * n as f64;
+        if n < spp_min {
+            // Not sampled yet (the first pass): to spp_min, whatever the rest get.
+            open.push(Some((n, spp_min, f64::INFINITY)));
+            continue;
         }
-        n = (n + (n / 2).max(1)).min(spp_max);
+        let (num, den) = sums.block_error_parts(b, n);
+        let relative = if den > 0.0 { num / den } else { 0.0 };
+        let quiet = rules.noise_threshold > 0.0 && relative <= rules.noise_threshold;
+        if n >= spp_max || quiet {
+            open.push(None);
+            continue;
+        }
+        let growth = if n < TRUSTED_SPP { 2 } else { 4 };
+        let mut cap = n.saturating_mul(growth).min(spp_max);
+        if rules.noise_threshold > 0.0 {
+            let need = n as f64 * (relative / rules.noise_threshold).powi(2);
+            cap = cap.min((need.ceil() as u32).max(n + 1));
+        }
+        let p = pixels(b);
+        let sigma = num / p * (n as f64).sqrt();
+        open.push(Some((n, cap, sigma / (den / p).sqrt())));
     }
-    n
+    if open.iter().flatten().any(|o| o.2.is_infinite()) {
+        // The first pass (or blocks never sampled): everyone to at least spp_min.
+        return counts
+            .iter()
+            .zip(&open)
+            .map(|(&n, o)| match o {
+                Some((_, cap, share)) if share.is_infinite() => *cap,
+                _ => n,
+            })
+            .collect();
+    }
+    let (mut weighted, mut weight) = (0.0, 0.0);
+    for (b, o) in open.iter().enumerate() {
+        if let Some((_, _, share)) = o {
+            weighted += share * pixels(b);
+            weight += pixels(b);
+        }
+    }
+    let floor = if weight > 0.0 && weighted > 0.0 {
+        weighted / weight * SHARE_FLOOR
+    } else {
+        // Every open block looks flat: share alike.
+        1.0
+    };
+    let budget = (total * PASS_GROWTH).max((w as f64) * (h as f64));
+    let targets = |c: f64| -> Vec<u32> {
+        counts
+            .iter()
+            .zip(&open)
+            .map(|(&n, o)| match o {
+                Some((n, cap, share)) => {
+                    let want = c * share.max(floor);
+                    if want >= *cap as f64 {
+                        *cap
+                    } else {
+                        (want as u32).clamp(*n, *cap)
+                    }
+                }
+                None => n,
+            })
+            .collect()
+    };
+    let spent = |t: &[u32]| -> f64 {
+        t.iter()
+            .zip(counts)
+            .enumerate()
+            .map(|(b, (&t, &n))| (t - n) as f64 * pixels(b))
+            .sum()
+    };
+    // The smallest c that spends the budget, by bisection (a fixed number of steps on f64:
+    // the same c on every machine); if even every cap does not, every open block to its cap.
+    let capped = targets(f64::INFINITY);
+    if spent(&capped) <= budget {
+        return capped;
+    }
+    let mut hi = 1.0;
+    while spent(&targets(hi)) < budget {
+        hi *= 2.0;
+    }
+    let mut lo = 0.0;
+    for _ in 0..60 {
+        let mid = (lo + hi) / 2.0;
+        if spent(&targets(mid)) >= budget {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    targets(hi)
 }
 
 /// The decision blocks of a `width`×`height` image: (columns, rows).
@@ -254,13 +385,78 @@ pub fn sample_map(width: u32, height: u32, counts: &[u32], spp_max: u32) -> Imag
 mod tests {
     use super::*;
 
+    /// A 32×8 image (four blocks) after `n` samples per pixel whose per-sample luminance
+    /// spread in block b is `spread[b]` around 0.5: each pixel's halves differ by the spread
+    /// over √n (the standard error of a mean of n samples).
+    fn spread_sums(n: u32, spread: [f64; 4]) -> SumImage {
+        let mut sums = SumImage::new(32, 8);
+        let second = second_half_count(n) as f64;
+        let first = n as f64 - second;
+        for y in 0..8 {
+            for x in 0..32 {
+                let d = spread[(x / 8) as usize] / (n as f64).sqrt();
+                // Half A's mean 0.5 + d, half B's 0.5 - d: |A - B| / 2 = d.
+                let (a, b) = ((0.5 + d) * first, (0.5 - d) * second);
+                let p = ((y * 32 + x) * SUMS as u32) as usize;
+                sums.data[p..p + SUMS].copy_from_slice(&[a + b, a + b, a + b, a + b, b]);
+            }
+        }
+        sums
+    }
+
+    const RULES: Rules = Rules {
+        noise_threshold: 0.0,
+        spp_min: 4,
+        spp_max: 256,
+    };
+
     #[test]
-    fn passes_grow_from_spp_min_to_spp_max() {
-        let targets: Vec<u32> = (0..12).map(|p| pass_target(p, 4, 64)).collect();
-        assert_eq!(targets, [4, 6, 9, 13, 19, 28, 42, 63, 64, 64, 64, 64]);
-        assert_eq!(pass_target(0, 1, 3), 1);
-        assert_eq!(pass_target(1, 1, 3), 2);
-        assert_eq!(pass_target(0, 10, 4), 4);
+    fn the_first_pass_brings_every_block_to_spp_min() {
+        let sums = SumImage::new(20, 9);
+        assert_eq!(plan(&sums, &[0; 6], RULES), [4; 6]);
+    }
+
+    #[test]
+    fn a_pass_spends_half_the_image_s_samples_where_the_noise_is() {
+        // Block 0 noisiest, block 3 flat.
+        let sums = spread_sums(16, [0.4, 0.2, 0.1, 0.0]);
+        let targets = plan(&sums, &[16; 4], RULES);
+        let added: u32 = targets.iter().map(|t| t - 16).sum();
+        // Half of 4 × 16 samples per pixel, give or take one block's step.
+        assert!((32..=34).contains(&added), "{targets:?}");
+        assert!(
+            targets[0] > targets[1] && targets[1] > targets[2],
+            "{targets:?}"
+        );
+        // A flat block keeps a small floor share, so it is looked at again later, but here it
+        // lies below its count already.
+        assert_eq!(targets[3], 16, "{targets:?}");
+        assert!(
+            targets.iter().all(|&t| t <= 64),
+            "at most x4 per pass: {targets:?}"
+        );
+        // Rough estimates (below 8 samples) at most double.
+        let early = plan(&spread_sums(4, [0.4, 0.0, 0.0, 0.0]), &[4; 4], RULES);
+        assert_eq!(early[0], 8, "{early:?}");
+    }
+
+    #[test]
+    fn done_blocks_keep_their_count_and_a_threshold_caps_what_a_block_needs() {
+        let sums = spread_sums(16, [0.4, 0.2, 0.1, 0.0]);
+        let rules = Rules {
+            noise_threshold: 0.12,
+            ..RULES
+        };
+        // Relative errors 0.2, 0.1, 0.05 and 0 after 16 samples: blocks 1 to 3 are quiet;
+        // block 0 needs 16 · (0.2 / 0.12)² = 44.4 samples to reach the threshold, which is
+        // less than the pass would give it.
+        assert_eq!(plan(&sums, &[16; 4], rules), [45, 16, 16, 16]);
+        // At spp_max a block is done whatever its noise.
+        let capped = Rules {
+            spp_max: 16,
+            ..RULES
+        };
+        assert_eq!(plan(&sums, &[16; 4], capped), [16; 4]);
     }
 
     #[test]
