@@ -20,8 +20,9 @@ use crate::settings::TileRect;
 
 /// f64 values kept per pixel: the sum of the samples' r, g, b (the one-shot render's sum),
 /// then the sum of every sample's luminance and the sum of the luminance of the samples in the
-/// second half-buffer ([`in_second_half`]): the two half-buffers of the error estimate.
-pub const SUMS: usize = 5;
+/// second half-buffer ([`in_second_half`]): the two half-buffers of the error estimate; then
+/// the rays the samples traced (what they cost: a deterministic stand-in for time).
+pub const SUMS: usize = 6;
 
 /// The edge of a decision block, in pixels.
 pub const BLOCK: u32 = 8;
@@ -64,13 +65,18 @@ pub struct Rules {
 }
 
 /// Each pass adds this fraction of the samples the image already has (at least one per
-/// pixel): passes grow geometrically, so there are few of them, and a pass cut short by a
-/// time limit holds a bounded part of the work.
-const PASS_GROWTH: f64 = 0.5;
+/// pixel): passes double, so there are few of them (each costs a round of leases and a pass
+/// end, and on a sub-second image that weighs), and a pass cut short by a time limit keeps
+/// the blocks it finished.
+const PASS_GROWTH: f64 = 1.0;
 
 /// Below this many samples a block's estimate is rough (two to seven samples per pixel
 /// compared in halves): a pass may at most double its samples; from here on, quadruple them.
 const TRUSTED_SPP: u32 = 8;
+
+/// How a block's share divides by its mean luminance: L^-w (0: absolute error, RMSE; 1:
+/// relative error).
+const LUMINANCE_WEIGHT: f64 = 0.5;
 
 /// A block's share of a pass never falls below this fraction of the mean share, so a block
 /// whose few samples happened to agree is still looked at again.
@@ -82,16 +88,18 @@ const SHARE_FLOOR: f64 = 0.1;
 ///
 /// The first pass brings every block to `spp_min`. A block is done (keeps its count) at
 /// `spp_max`, or once it has `spp_min` samples and its relative error is at most the noise
-/// threshold. The other blocks share the pass's samples (half as many as the image has, at
-/// least one per pixel) in proportion to how much a sample lowers their error: a block's
-/// total goes towards c · σ_b / √L_b, where σ_b is its per-sample standard deviation
-/// (estimated error × √n) and L_b its mean luminance (floored at [`DARK_FLOOR`]). Samples
-/// ∝ σ minimise the absolute squared error (RMSE) for a given total, samples ∝ σ / L the
-/// relative one; √L weighs the two alike. c is the smallest that spends the pass's samples
-/// (water-filling: blocks already beyond their share get nothing). A block's total grows at
-/// most ×2 per pass below [`TRUSTED_SPP`] and ×4 from there (its estimate is noisy), never
-/// beyond `spp_max`, and with a threshold never beyond what its estimate says it needs to
-/// reach it (n · (error / threshold)², at least one more sample).
+/// threshold. The other blocks share the pass's samples (as many as the image has, at least
+/// one per pixel; counted in rays, the deterministic stand-in for time): a block's total
+/// goes towards c · σ_b / √(L_b κ_b), where σ_b is its per-sample standard deviation
+/// (estimated error × √n), L_b its mean luminance (floored at [`DARK_FLOOR`]) and κ_b its
+/// rays per sample (glass and many bounces cost more). Samples ∝ σ / √κ minimise the
+/// absolute squared error (RMSE) for a given cost, samples ∝ σ / (L √κ) the relative one;
+/// √L weighs the two alike. c is the smallest that spends the pass's samples
+/// (water-filling: blocks already beyond their share get nothing). Counts step in powers of
+/// two ([`level_above`]): a block's total grows one level per pass below [`TRUSTED_SPP`]
+/// (×2) and at most two from there (×4; its estimate is noisy before), never beyond
+/// `spp_max`, and with a threshold never beyond the first level that reaches what its
+/// estimate says it needs (n · (error / threshold)²).
 pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
     let spp_max = rules.spp_max.max(1);
     let spp_min = rules.spp_min.clamp(1, spp_max);
@@ -103,9 +111,18 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
     };
     // (count, cap, share) of each block still sampling; None for a done one.
     let mut open: Vec<Option<(u32, u32, f64)>> = Vec::with_capacity(counts.len());
-    let mut total = 0.0;
+    // Each block's cost of one more sample per pixel (its rays per sample × its pixels).
+    let mut cost = vec![0.0; counts.len()];
+    let (mut total, mut one_each) = (0.0, 0.0);
     for (b, &n) in counts.iter().enumerate() {
-        total += pixels(b) * n as f64;
+        let p = pixels(b);
+        cost[b] = p * if n > 0 {
+            (sums.block_rays(b) / (n as f64 * p)).max(1.0)
+        } else {
+            1.0
+        };
+        total += cost[b] * n as f64;
+        one_each += cost[b];
         if n < spp_min {
             // Not sampled yet (the first pass): to spp_min, whatever the rest get.
             open.push(Some((n, spp_min, f64::INFINITY)));
@@ -118,15 +135,26 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
             open.push(None);
             continue;
         }
-        let growth = if n < TRUSTED_SPP { 2 } else { 4 };
-        let mut cap = n.saturating_mul(growth).min(spp_max);
-        if rules.noise_threshold > 0.0 {
-            let need = n as f64 * (relative / rules.noise_threshold).powi(2);
-            cap = cap.min((need.ceil() as u32).max(n + 1));
+        let mut cap = level_above(n, spp_max);
+        if n >= TRUSTED_SPP {
+            cap = level_above(cap, spp_max);
         }
-        let p = pixels(b);
+        if rules.noise_threshold > 0.0 {
+            // The first level that reaches what the estimate says the block needs.
+            let need = n as f64 * (relative / rules.noise_threshold).powi(2);
+            let mut enough = level_above(n, spp_max);
+            while (enough as f64) < need && enough < cap {
+                enough = level_above(enough, spp_max);
+            }
+            cap = cap.min(enough);
+        }
         let sigma = num / p * (n as f64).sqrt();
-        open.push(Some((n, cap, sigma / (den / p).sqrt())));
+        let rays_per_sample = cost[b] / p;
+        open.push(Some((
+            n,
+            cap,
+            sigma / rays_per_sample.sqrt() / (den / p).powf(LUMINANCE_WEIGHT),
+        )));
     }
     if open.iter().flatten().any(|o| o.2.is_infinite()) {
         // The first pass (or blocks never sampled): everyone to at least spp_min.
@@ -152,19 +180,20 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
         // Every open block looks flat: share alike.
         1.0
     };
-    let budget = (total * PASS_GROWTH).max((w as f64) * (h as f64));
+    let budget = (total * PASS_GROWTH).max(one_each);
     let targets = |c: f64| -> Vec<u32> {
         counts
             .iter()
             .zip(&open)
             .map(|(&n, o)| match o {
                 Some((n, cap, share)) => {
+                    // The highest level up to the block's share of c.
                     let want = c * share.max(floor);
-                    if want >= *cap as f64 {
-                        *cap
-                    } else {
-                        (want as u32).clamp(*n, *cap)
+                    let mut t = *n;
+                    while t < *cap && level_above(t, *cap) as f64 <= want {
+                        t = level_above(t, *cap);
                     }
+                    t
                 }
                 None => n,
             })
@@ -174,7 +203,7 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
         t.iter()
             .zip(counts)
             .enumerate()
-            .map(|(b, (&t, &n))| (t - n) as f64 * pixels(b))
+            .map(|(b, (&t, &n))| (t - n) as f64 * cost[b])
             .sum()
     };
     // The smallest c that spends the budget, by bisection (a fixed number of steps on f64:
@@ -197,6 +226,20 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
         }
     }
     targets(hi)
+}
+
+/// The sample count a block steps up to from `n`: the next power of two (capped at
+/// `spp_max`). The progressive order puts a prefix of 2^j samples one in each of the pixel's
+/// 2^j coarsest cells, so power-of-two counts are perfectly stratified; counts in between
+/// visit some cells twice and others not at all, and on edges and soft shadows that costs
+/// more error than their extra samples save.
+fn level_above(n: u32, spp_max: u32) -> u32 {
+    let next = if n.is_power_of_two() {
+        n.saturating_mul(2)
+    } else {
+        n.next_power_of_two()
+    };
+    next.min(spp_max).max(n.saturating_add(1).min(spp_max))
 }
 
 /// The decision blocks of a `width`×`height` image: (columns, rows).
@@ -281,6 +324,19 @@ impl SumImage {
         } else {
             num / den
         }
+    }
+
+    /// The rays block `block`'s samples traced so far.
+    fn block_rays(&self, block: usize) -> f64 {
+        let cols = self.width.div_ceil(BLOCK) as usize;
+        let (bx, by) = ((block % cols) as u32 * BLOCK, (block / cols) as u32 * BLOCK);
+        let mut rays = 0.0;
+        for y in by..(by + BLOCK).min(self.height) {
+            for x in bx..(bx + BLOCK).min(self.width) {
+                rays += self.data[(y as usize * self.width as usize + x as usize) * SUMS + 5];
+            }
+        }
+        rays
     }
 
     /// Σ|A − B|/2 and Σ max(I, floor) over the block's pixels.
@@ -398,7 +454,14 @@ mod tests {
                 // Half A's mean 0.5 + d, half B's 0.5 - d: |A - B| / 2 = d.
                 let (a, b) = ((0.5 + d) * first, (0.5 - d) * second);
                 let p = ((y * 32 + x) * SUMS as u32) as usize;
-                sums.data[p..p + SUMS].copy_from_slice(&[a + b, a + b, a + b, a + b, b]);
+                sums.data[p..p + SUMS].copy_from_slice(&[
+                    a + b,
+                    a + b,
+                    a + b,
+                    a + b,
+                    b,
+                    2.0 * n as f64,
+                ]);
             }
         }
         sums
@@ -417,13 +480,13 @@ mod tests {
     }
 
     #[test]
-    fn a_pass_spends_half_the_image_s_samples_where_the_noise_is() {
+    fn a_pass_doubles_the_image_s_samples_where_the_noise_is() {
         // Block 0 noisiest, block 3 flat.
         let sums = spread_sums(16, [0.4, 0.2, 0.1, 0.0]);
         let targets = plan(&sums, &[16; 4], RULES);
         let added: u32 = targets.iter().map(|t| t - 16).sum();
-        // Half of 4 × 16 samples per pixel, give or take one block's step.
-        assert!((32..=34).contains(&added), "{targets:?}");
+        // As many samples as the image has (4 × 16 per pixel), give or take one block's step.
+        assert!((64..=66).contains(&added), "{targets:?}");
         assert!(
             targets[0] > targets[1] && targets[1] > targets[2],
             "{targets:?}"
@@ -485,7 +548,7 @@ mod tests {
             for x in 0..16 {
                 let p = (y * 16 + x) * SUMS;
                 let (all, odd) = if x < 8 { (2.0, 1.0) } else { (2.0, 2.0) };
-                sums.data[p..p + SUMS].copy_from_slice(&[all, all, all, all, odd]);
+                sums.data[p..p + SUMS].copy_from_slice(&[all, all, all, all, odd, 8.0]);
             }
         }
         assert_eq!(sums.block_error(0, n), 0.0);

@@ -51,6 +51,8 @@ struct PixelSums {
     rgb: DVec3,
     lum: f64,
     lum_odd: f64,
+    /// Rays traced (radiance and shadow): what the pixel's samples cost.
+    rays: f64,
 }
 
 impl<'a> Renderer<'a> {
@@ -190,9 +192,17 @@ impl<'a> Renderer<'a> {
                         rgb: DVec3::new(px[0], px[1], px[2]),
                         lum: px[3],
                         lum_odd: px[4],
+                        rays: px[5],
                     };
                     shade.accumulate::<true>(x, range, &mut acc);
-                    px.copy_from_slice(&[acc.rgb.x, acc.rgb.y, acc.rgb.z, acc.lum, acc.lum_odd]);
+                    px.copy_from_slice(&[
+                        acc.rgb.x,
+                        acc.rgb.y,
+                        acc.rgb.z,
+                        acc.lum,
+                        acc.lum_odd,
+                        acc.rays,
+                    ]);
                 });
             });
         !cancel.load(Ordering::Relaxed)
@@ -270,7 +280,13 @@ impl RowShader<'_> {
         acc: &mut PixelSums,
     ) {
         let eye = &self.renderer.eye;
-        eye.strata_order(self.renderer.order, x, self.y, samples.end, &mut self.order);
+        eye.strata_order(
+            self.renderer.order,
+            x,
+            self.y,
+            samples.clone(),
+            &mut self.order,
+        );
         // A pixel's eye rays share an origin and stay within its frustum, whatever their
         // strata: the top-level slots the frustum meets are found once per pixel, and each eye
         // ray tests just those instead of traversing.
@@ -281,11 +297,12 @@ impl RowShader<'_> {
             }
             None => None,
         };
+        let first = samples.start;
         for sample in samples {
             let stratum = if self.order.is_empty() {
                 sample
             } else {
-                self.order[sample as usize]
+                self.order[(sample - first) as usize]
             };
             let mut ray = eye.sample_in(x, self.y, sample, stratum);
             let (color, counts) = self.tracer.sample(
@@ -306,6 +323,7 @@ impl RowShader<'_> {
                 if in_second_half(sample) {
                     acc.lum_odd += lum;
                 }
+                acc.rays += (counts.radiance + counts.shadow) as f64;
             }
         }
     }

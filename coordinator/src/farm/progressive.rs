@@ -42,7 +42,7 @@ pub struct Progress {
 }
 
 /// Magic and version of the sums file.
-const MAGIC: &[u8; 8] = b"TSUMS\0\0\x01";
+const MAGIC: &[u8; 8] = b"TSUMS\0\0\x02";
 
 impl Progress {
     /// The passes of a job whose spec asks for them; None for a one-shot job.

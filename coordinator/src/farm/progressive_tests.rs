@@ -112,15 +112,15 @@ fn pass_by_pass_equals_the_one_shot_render_and_the_error_falls() {
     // Threshold 0: every block goes to spp_max, the noisier ones first (each block continues
     // its own sample range, so passes leave blocks at different counts on the way).
     let job = farm
-        .submit(adaptive_job(&farm, 7, rules(0.0, 4, 16)))
+        .submit(adaptive_job(&farm, 7, rules(0.0, 2, 64)))
         .unwrap();
-    assert_eq!(job.spec.render.spp, 16, "spp_max replaces spp");
+    assert_eq!(job.spec.render.spp, 64, "spp_max replaces spp");
     run(&farm, &scene, job.id, 1);
     let info = farm.job(job.id).unwrap();
     assert_eq!(info.state, JobState::Done);
-    assert_eq!(info.spp_mean, Some(16.0));
+    assert_eq!(info.spp_mean, Some(64.0));
     let settings = tracer_core::RenderSettings {
-        spp: 16,
+        spp: 64,
         ..job.spec.render.clone()
     };
     let one_shot = Renderer::new(&scene, &settings)
@@ -135,7 +135,7 @@ fn pass_by_pass_equals_the_one_shot_render_and_the_error_falls() {
     );
     let passes = farm.convergence(job.id).unwrap().passes;
     let spp: Vec<f64> = passes.iter().map(|p| p.spp_mean).collect();
-    assert_eq!(spp[0], 4.0);
+    assert_eq!(spp[0], 2.0);
     assert!(
         spp.windows(2).all(|w| w[1] > w[0]) && passes.len() >= 4,
         "passes add samples: {spp:?}"
