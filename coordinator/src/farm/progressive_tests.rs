@@ -112,7 +112,7 @@ fn pass_by_pass_equals_the_one_shot_render_and_the_error_falls() {
     // Threshold 0: every block goes to spp_max, the noisier ones first (each block continues
     // its own sample range, so passes leave blocks at different counts on the way).
     let job = farm
-        .submit(adaptive_job(&farm, 7, rules(0.0, 2, 64)))
+        .submit(sized_job(&farm, 64, 48, 7, rules(0.0, 2, 64)))
         .unwrap();
     assert_eq!(job.spec.render.spp, 64, "spp_max replaces spp");
     run(&farm, &scene, job.id, 1);
