@@ -436,12 +436,32 @@ pub struct Lease {
 pub struct PassLease {
     pub pass: u32,
     /// Sample indices `samples_from..samples_to` in the progressive order over `settings.spp`
-    /// strata; the sums so far hold samples `0..samples_from`.
+    /// strata; the sums so far hold samples `0..samples_from`. With `block_samples`, the
+    /// smallest start and largest end of its ranges.
     pub samples_from: u32,
     pub samples_to: u32,
     /// The 8×8 blocks of the image (`tracer_core::adaptive::block_of` indices) of this tile
-    /// that still sample; pixels of the others keep their sums.
+    /// that still sample, ascending; pixels of the others keep their sums.
     pub active_blocks: Vec<u32>,
+    /// Each active block's own sample range `[from, to)` (same order as `active_blocks`):
+    /// blocks of one pass may sample different ranges. Empty: every active block samples
+    /// `samples_from..samples_to`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub block_samples: Vec<[u32; 2]>,
+}
+
+impl PassLease {
+    /// The sample range of block `block` in this pass (empty for a block that does not
+    /// sample).
+    pub fn block_range(&self, block: u32) -> std::ops::Range<u32> {
+        match self.active_blocks.binary_search(&block) {
+            Ok(i) => match self.block_samples.get(i) {
+                Some(&[from, to]) => from..to,
+                None => self.samples_from..self.samples_to,
+            },
+            Err(_) => 0..0,
+        }
+    }
 }
 
 /// The answer to a heartbeat: the lease's new expiry.

@@ -20,8 +20,9 @@ use crate::settings::TileRect;
 
 /// f64 values kept per pixel: the sum of the samples' r, g, b (the one-shot render's sum),
 /// then the sum of every sample's luminance and the sum of the luminance of the samples in the
-/// second half-buffer ([`in_second_half`]): the two half-buffers of the error estimate.
-pub const SUMS: usize = 5;
+/// second half-buffer ([`in_second_half`]): the two half-buffers of the error estimate; then
+/// the rays the samples traced (what they cost: a deterministic stand-in for time).
+pub const SUMS: usize = 6;
 
 /// The edge of a decision block, in pixels.
 pub const BLOCK: u32 = 8;
@@ -54,18 +55,191 @@ pub fn luminance(r: f64, g: f64, b: f64) -> f64 {
     (r.min(1.0) + g.min(1.0) + b.min(1.0)) / 3.0
 }
 
-/// Cumulative samples per pixel after pass `pass` (counted from 0) of a render that starts
-/// with `spp_min` and stops at `spp_max`: each pass adds half of what was there (at least one
-/// sample), so passes grow geometrically and a time limit loses at most a third of the work.
-pub fn pass_target(pass: u32, spp_min: u32, spp_max: u32) -> u32 {
-    let mut n = spp_min.clamp(1, spp_max.max(1));
-    for _ in 0..pass {
-        if n >= spp_max {
-            break;
+/// The stopping rules a plan follows (the job spec's `adaptive`, less its time limit).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Rules {
+    /// Relative error at which a block stops; 0 never stops a block on noise.
+    pub noise_threshold: f64,
+    pub spp_min: u32,
+    pub spp_max: u32,
+}
+
+/// Each pass adds this fraction of the samples the image already has (at least one per
+/// pixel): passes double, so there are few of them (each costs a round of leases and a pass
+/// end, and on a sub-second image that weighs), and a pass cut short by a time limit keeps
+/// the blocks it finished.
+const PASS_GROWTH: f64 = 1.0;
+
+/// Below this many samples a block's estimate is rough (two to seven samples per pixel
+/// compared in halves): a pass may at most double its samples; from here on, quadruple them.
+const TRUSTED_SPP: u32 = 8;
+
+/// How a block's share divides by its mean luminance: L^-w (0: absolute error, RMSE; 1:
+/// relative error).
+const LUMINANCE_WEIGHT: f64 = 0.5;
+
+/// A block's share of a pass never falls below this fraction of the mean share, so a block
+/// whose few samples happened to agree is still looked at again.
+const SHARE_FLOOR: f64 = 0.1;
+
+/// The samples per pixel each block has after the next pass (`counts` is what each has now;
+/// a block with `target == count` does not sample in it). A pure function of the sums, so
+/// every farm plans alike.
+///
+/// The first pass brings every block to `spp_min`. A block is done (keeps its count) at
+/// `spp_max`, or once it has `spp_min` samples and its relative error is at most the noise
+/// threshold. The other blocks share the pass's samples (as many as the image has, at least
+/// one per pixel; counted in rays, the deterministic stand-in for time): a block's total
+/// goes towards c · σ_b / √(L_b κ_b), where σ_b is its per-sample standard deviation
+/// (estimated error × √n), L_b its mean luminance (floored at [`DARK_FLOOR`]) and κ_b its
+/// rays per sample (glass and many bounces cost more). Samples ∝ σ / √κ minimise the
+/// absolute squared error (RMSE) for a given cost, samples ∝ σ / (L √κ) the relative one;
+/// √L weighs the two alike. c is the smallest that spends the pass's samples
+/// (water-filling: blocks already beyond their share get nothing). Counts step in powers of
+/// two ([`level_above`]): a block's total grows one level per pass below [`TRUSTED_SPP`]
+/// (×2) and at most two from there (×4; its estimate is noisy before), never beyond
+/// `spp_max`, and with a threshold never beyond the first level that reaches what its
+/// estimate says it needs (n · (error / threshold)²).
+pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
+    let spp_max = rules.spp_max.max(1);
+    let spp_min = rules.spp_min.clamp(1, spp_max);
+    let (w, h) = (sums.width, sums.height);
+    let cols = w.div_ceil(BLOCK);
+    let pixels = |b: usize| {
+        let (bx, by) = (b as u32 % cols, b as u32 / cols);
+        (BLOCK.min(w - bx * BLOCK) * BLOCK.min(h - by * BLOCK)) as f64
+    };
+    // (count, cap, share) of each block still sampling; None for a done one.
+    let mut open: Vec<Option<(u32, u32, f64)>> = Vec::with_capacity(counts.len());
+    // Each block's cost of one more sample per pixel (its rays per sample × its pixels).
+    let mut cost = vec![0.0; counts.len()];
+    let (mut total, mut one_each) = (0.0, 0.0);
+    for (b, &n) in counts.iter().enumerate() {
+        let p = pixels(b);
+        cost[b] = p * if n > 0 {
+            (sums.block_rays(b) / (n as f64 * p)).max(1.0)
+        } else {
+            1.0
+        };
+        total += cost[b] * n as f64;
+        one_each += cost[b];
+        if n < spp_min {
+            // Not sampled yet (the first pass): to spp_min, whatever the rest get.
+            open.push(Some((n, spp_min, f64::INFINITY)));
+            continue;
         }
-        n = (n + (n / 2).max(1)).min(spp_max);
+        let (num, den) = sums.block_error_parts(b, n);
+        let relative = if den > 0.0 { num / den } else { 0.0 };
+        let quiet = rules.noise_threshold > 0.0 && relative <= rules.noise_threshold;
+        if n >= spp_max || quiet {
+            open.push(None);
+            continue;
+        }
+        let mut cap = level_above(n, spp_max);
+        if n >= TRUSTED_SPP {
+            cap = level_above(cap, spp_max);
+        }
+        if rules.noise_threshold > 0.0 {
+            // The first level that reaches what the estimate says the block needs.
+            let need = n as f64 * (relative / rules.noise_threshold).powi(2);
+            let mut enough = level_above(n, spp_max);
+            while (enough as f64) < need && enough < cap {
+                enough = level_above(enough, spp_max);
+            }
+            cap = cap.min(enough);
+        }
+        let sigma = num / p * (n as f64).sqrt();
+        let rays_per_sample = cost[b] / p;
+        open.push(Some((
+            n,
+            cap,
+            sigma / rays_per_sample.sqrt() / (den / p).powf(LUMINANCE_WEIGHT),
+        )));
     }
-    n
+    if open.iter().flatten().any(|o| o.2.is_infinite()) {
+        // The first pass (or blocks never sampled): everyone to at least spp_min.
+        return counts
+            .iter()
+            .zip(&open)
+            .map(|(&n, o)| match o {
+                Some((_, cap, share)) if share.is_infinite() => *cap,
+                _ => n,
+            })
+            .collect();
+    }
+    let (mut weighted, mut weight) = (0.0, 0.0);
+    for (b, o) in open.iter().enumerate() {
+        if let Some((_, _, share)) = o {
+            weighted += share * pixels(b);
+            weight += pixels(b);
+        }
+    }
+    let floor = if weight > 0.0 && weighted > 0.0 {
+        weighted / weight * SHARE_FLOOR
+    } else {
+        // Every open block looks flat: share alike.
+        1.0
+    };
+    let budget = (total * PASS_GROWTH).max(one_each);
+    let targets = |c: f64| -> Vec<u32> {
+        counts
+            .iter()
+            .zip(&open)
+            .map(|(&n, o)| match o {
+                Some((n, cap, share)) => {
+                    // The highest level up to the block's share of c.
+                    let want = c * share.max(floor);
+                    let mut t = *n;
+                    while t < *cap && level_above(t, *cap) as f64 <= want {
+                        t = level_above(t, *cap);
+                    }
+                    t
+                }
+                None => n,
+            })
+            .collect()
+    };
+    let spent = |t: &[u32]| -> f64 {
+        t.iter()
+            .zip(counts)
+            .enumerate()
+            .map(|(b, (&t, &n))| (t - n) as f64 * cost[b])
+            .sum()
+    };
+    // The smallest c that spends the budget, by bisection (a fixed number of steps on f64:
+    // the same c on every machine); if even every cap does not, every open block to its cap.
+    let capped = targets(f64::INFINITY);
+    if spent(&capped) <= budget {
+        return capped;
+    }
+    let mut hi = 1.0;
+    while spent(&targets(hi)) < budget {
+        hi *= 2.0;
+    }
+    let mut lo = 0.0;
+    for _ in 0..60 {
+        let mid = (lo + hi) / 2.0;
+        if spent(&targets(mid)) >= budget {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    targets(hi)
+}
+
+/// The sample count a block steps up to from `n`: the next power of two (capped at
+/// `spp_max`). The progressive order puts a prefix of 2^j samples one in each of the pixel's
+/// 2^j coarsest cells, so power-of-two counts are perfectly stratified; counts in between
+/// visit some cells twice and others not at all, and on edges and soft shadows that costs
+/// more error than their extra samples save.
+fn level_above(n: u32, spp_max: u32) -> u32 {
+    let next = if n.is_power_of_two() {
+        n.saturating_mul(2)
+    } else {
+        n.next_power_of_two()
+    };
+    next.min(spp_max).max(n.saturating_add(1).min(spp_max))
 }
 
 /// The decision blocks of a `width`×`height` image: (columns, rows).
@@ -150,6 +324,19 @@ impl SumImage {
         } else {
             num / den
         }
+    }
+
+    /// The rays block `block`'s samples traced so far.
+    fn block_rays(&self, block: usize) -> f64 {
+        let cols = self.width.div_ceil(BLOCK) as usize;
+        let (bx, by) = ((block % cols) as u32 * BLOCK, (block / cols) as u32 * BLOCK);
+        let mut rays = 0.0;
+        for y in by..(by + BLOCK).min(self.height) {
+            for x in bx..(bx + BLOCK).min(self.width) {
+                rays += self.data[(y as usize * self.width as usize + x as usize) * SUMS + 5];
+            }
+        }
+        rays
     }
 
     /// Σ|A − B|/2 and Σ max(I, floor) over the block's pixels.
@@ -254,13 +441,85 @@ pub fn sample_map(width: u32, height: u32, counts: &[u32], spp_max: u32) -> Imag
 mod tests {
     use super::*;
 
+    /// A 32×8 image (four blocks) after `n` samples per pixel whose per-sample luminance
+    /// spread in block b is `spread[b]` around 0.5: each pixel's halves differ by the spread
+    /// over √n (the standard error of a mean of n samples).
+    fn spread_sums(n: u32, spread: [f64; 4]) -> SumImage {
+        let mut sums = SumImage::new(32, 8);
+        let second = second_half_count(n) as f64;
+        let first = n as f64 - second;
+        for y in 0..8 {
+            for x in 0..32 {
+                let d = spread[(x / 8) as usize] / (n as f64).sqrt();
+                // Half A's mean 0.5 + d, half B's 0.5 - d: |A - B| / 2 = d.
+                let (a, b) = ((0.5 + d) * first, (0.5 - d) * second);
+                let p = ((y * 32 + x) * SUMS as u32) as usize;
+                sums.data[p..p + SUMS].copy_from_slice(&[
+                    a + b,
+                    a + b,
+                    a + b,
+                    a + b,
+                    b,
+                    2.0 * n as f64,
+                ]);
+            }
+        }
+        sums
+    }
+
+    const RULES: Rules = Rules {
+        noise_threshold: 0.0,
+        spp_min: 4,
+        spp_max: 256,
+    };
+
     #[test]
-    fn passes_grow_from_spp_min_to_spp_max() {
-        let targets: Vec<u32> = (0..12).map(|p| pass_target(p, 4, 64)).collect();
-        assert_eq!(targets, [4, 6, 9, 13, 19, 28, 42, 63, 64, 64, 64, 64]);
-        assert_eq!(pass_target(0, 1, 3), 1);
-        assert_eq!(pass_target(1, 1, 3), 2);
-        assert_eq!(pass_target(0, 10, 4), 4);
+    fn the_first_pass_brings_every_block_to_spp_min() {
+        let sums = SumImage::new(20, 9);
+        assert_eq!(plan(&sums, &[0; 6], RULES), [4; 6]);
+    }
+
+    #[test]
+    fn a_pass_doubles_the_image_s_samples_where_the_noise_is() {
+        // Block 0 noisiest, block 3 flat.
+        let sums = spread_sums(16, [0.4, 0.2, 0.1, 0.0]);
+        let targets = plan(&sums, &[16; 4], RULES);
+        let added: u32 = targets.iter().map(|t| t - 16).sum();
+        // As many samples as the image has (4 × 16 per pixel), give or take one block's step.
+        assert!((64..=66).contains(&added), "{targets:?}");
+        assert!(
+            targets[0] > targets[1] && targets[1] > targets[2],
+            "{targets:?}"
+        );
+        // A flat block keeps a small floor share, so it is looked at again later, but here it
+        // lies below its count already.
+        assert_eq!(targets[3], 16, "{targets:?}");
+        assert!(
+            targets.iter().all(|&t| t <= 64),
+            "at most x4 per pass: {targets:?}"
+        );
+        // Rough estimates (below 8 samples) at most double.
+        let early = plan(&spread_sums(4, [0.4, 0.0, 0.0, 0.0]), &[4; 4], RULES);
+        assert_eq!(early[0], 8, "{early:?}");
+    }
+
+    #[test]
+    fn done_blocks_keep_their_count_and_a_threshold_caps_what_a_block_needs() {
+        let sums = spread_sums(16, [0.4, 0.2, 0.1, 0.0]);
+        let rules = Rules {
+            noise_threshold: 0.15,
+            ..RULES
+        };
+        // Relative errors 0.2, 0.1, 0.05 and 0 after 16 samples: blocks 1 to 3 are quiet;
+        // block 0 needs 16 · (0.2 / 0.15)² = 28.4 samples to reach the threshold: the first
+        // level past that is 32, less than the 64 the pass would give it.
+        assert_eq!(plan(&sums, &[16; 4], rules), [32, 16, 16, 16]);
+        // At spp_max a block is done whatever its noise.
+        let capped = Rules {
+            spp_max: 16,
+            ..RULES
+        };
+        assert_eq!(plan(&sums, &[16; 4], capped), [16; 4]);
     }
 
     #[test]
@@ -289,7 +548,7 @@ mod tests {
             for x in 0..16 {
                 let p = (y * 16 + x) * SUMS;
                 let (all, odd) = if x < 8 { (2.0, 1.0) } else { (2.0, 2.0) };
-                sums.data[p..p + SUMS].copy_from_slice(&[all, all, all, all, odd]);
+                sums.data[p..p + SUMS].copy_from_slice(&[all, all, all, all, odd, 8.0]);
             }
         }
         assert_eq!(sums.block_error(0, n), 0.0);

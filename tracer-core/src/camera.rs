@@ -6,7 +6,7 @@
 use glam::{DQuat, DVec3};
 
 use crate::geometry::Ray;
-use crate::sampler::{concentric_disk, progressive_strata, strata, Rng, SampleOrder, Stream};
+use crate::sampler::{concentric_disk, progressive_strata_from, strata, Rng, SampleOrder, Stream};
 use crate::scene::{CameraDesc, Scene};
 use crate::settings::{CameraOverride, RenderSettings};
 
@@ -218,14 +218,28 @@ impl<'a> EyeRays<'a> {
         Some((self.camera.position, planes))
     }
 
-    /// The strata of pixel (x, y)'s first `limit` samples under `order` into `out` (`out[k]`
-    /// is sample k's stratum); left empty for the grid order, where sample k takes stratum k.
-    pub fn strata_order(&self, order: SampleOrder, x: u32, y: u32, limit: u32, out: &mut Vec<u32>) {
+    /// The strata of pixel (x, y)'s samples `samples` under `order` into `out` (`out[i]` is
+    /// sample `samples.start + i`'s stratum); left empty for the grid order, where sample k
+    /// takes stratum k.
+    pub fn strata_order(
+        &self,
+        order: SampleOrder,
+        x: u32,
+        y: u32,
+        samples: std::ops::Range<u32>,
+        out: &mut Vec<u32>,
+    ) {
         match order {
             SampleOrder::Grid => out.clear(),
-            SampleOrder::Progressive => {
-                progressive_strata(self.seed, x, y, self.strata, limit, out)
-            }
+            SampleOrder::Progressive => progressive_strata_from(
+                self.seed,
+                x,
+                y,
+                self.strata,
+                samples.start,
+                samples.end,
+                out,
+            ),
         }
     }
 

@@ -51,6 +51,8 @@ struct PixelSums {
     rgb: DVec3,
     lum: f64,
     lum_odd: f64,
+    /// Rays traced (radiance and shadow): what the pixel's samples cost.
+    rays: f64,
 }
 
 impl<'a> Renderer<'a> {
@@ -148,17 +150,17 @@ impl<'a> Renderer<'a> {
         image
     }
 
-    /// Continues the running sums of `rect`'s pixels with samples `samples` (indices into the
-    /// settings' `spp`, in the renderer's sample order), for the pixels `active(x, y)` accepts
-    /// (x, y in image pixels from the top); the others keep their sums. `sums` holds
+    /// Continues the running sums of each of `rect`'s pixels with the samples `samples(x, y)`
+    /// (indices into the settings' `spp`, in the renderer's sample order; x, y in image pixels
+    /// from the top): a pixel's range starts where its sums stopped, and a pixel with an empty
+    /// range keeps its sums (each 8×8 block of a pass has its own range). `sums` holds
     /// [`SUMS`] f64 per pixel of the tile, row-major from its top row ([`crate::adaptive`]):
     /// zeros before the first pass. A pixel's sum after samples 0..n is bit-identical to what
     /// a one-shot render of n samples divides. Returns false if `cancel` was set first.
     pub fn render_tile_samples(
         &self,
         rect: TileRect,
-        samples: Range<u32>,
-        active: &(dyn Fn(u32, u32) -> bool + Sync),
+        samples: &(dyn Fn(u32, u32) -> Range<u32> + Sync),
         sums: &mut [f64],
         cancel: &AtomicBool,
     ) -> bool {
@@ -168,11 +170,6 @@ impl<'a> Renderer<'a> {
             "tile {rect:?} lies outside the {}x{} image",
             self.settings.width,
             self.settings.height
-        );
-        assert!(
-            samples.end <= self.settings.spp,
-            "samples {samples:?} go beyond spp {}",
-            self.settings.spp
         );
         assert_eq!(sums.len(), rect.pixel_count() * SUMS, "tile sums size");
         if rect.width == 0 {
@@ -187,16 +184,30 @@ impl<'a> Renderer<'a> {
                 let row = rect.y + row as u32;
                 self.pixels(rect.x, row, out.len() / SUMS, |i, x, shade| {
                     let px = &mut out[i * SUMS..(i + 1) * SUMS];
-                    if !active(x, row) {
+                    let range = samples(x, row);
+                    if range.is_empty() {
                         return;
                     }
+                    assert!(
+                        range.end <= self.settings.spp,
+                        "samples {range:?} go beyond spp {}",
+                        self.settings.spp
+                    );
                     let mut acc = PixelSums {
                         rgb: DVec3::new(px[0], px[1], px[2]),
                         lum: px[3],
                         lum_odd: px[4],
+                        rays: px[5],
                     };
-                    shade.accumulate::<true>(x, samples.clone(), &mut acc);
-                    px.copy_from_slice(&[acc.rgb.x, acc.rgb.y, acc.rgb.z, acc.lum, acc.lum_odd]);
+                    shade.accumulate::<true>(x, range, &mut acc);
+                    px.copy_from_slice(&[
+                        acc.rgb.x,
+                        acc.rgb.y,
+                        acc.rgb.z,
+                        acc.lum,
+                        acc.lum_odd,
+                        acc.rays,
+                    ]);
                 });
             });
         !cancel.load(Ordering::Relaxed)
@@ -274,7 +285,13 @@ impl RowShader<'_> {
         acc: &mut PixelSums,
     ) {
         let eye = &self.renderer.eye;
-        eye.strata_order(self.renderer.order, x, self.y, samples.end, &mut self.order);
+        eye.strata_order(
+            self.renderer.order,
+            x,
+            self.y,
+            samples.clone(),
+            &mut self.order,
+        );
         // A pixel's eye rays share an origin and stay within its frustum, whatever their
         // strata: the top-level slots the frustum meets are found once per pixel, and each eye
         // ray tests just those instead of traversing.
@@ -285,11 +302,12 @@ impl RowShader<'_> {
             }
             None => None,
         };
+        let first = samples.start;
         for sample in samples {
             let stratum = if self.order.is_empty() {
                 sample
             } else {
-                self.order[sample as usize]
+                self.order[(sample - first) as usize]
             };
             let mut ray = eye.sample_in(x, self.y, sample, stratum);
             let (color, counts) = self.tracer.sample(
@@ -310,6 +328,7 @@ impl RowShader<'_> {
                 if in_second_half(sample) {
                     acc.lum_odd += lum;
                 }
+                acc.rays += (counts.radiance + counts.shadow) as f64;
             }
         }
     }

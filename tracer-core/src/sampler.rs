@@ -165,7 +165,22 @@ pub fn progressive_strata(
     seed: u64,
     x: u32,
     y: u32,
+    grid: (u32, u32),
+    limit: u32,
+    out: &mut Vec<u32>,
+) {
+    progressive_strata_from(seed, x, y, grid, 0, limit, out);
+}
+
+/// [`progressive_strata`] of samples `from..limit` only: `out[i]` is the stratum of sample
+/// `from + i`. On a power-of-two grid (every code is a stratum) sample k's stratum follows
+/// from k alone, so a later pass costs only its own samples, not the prefix before them.
+pub fn progressive_strata_from(
+    seed: u64,
+    x: u32,
+    y: u32,
     (cols, rows): (u32, u32),
+    from: u32,
     limit: u32,
     out: &mut Vec<u32>,
 ) {
@@ -177,6 +192,19 @@ pub fn progressive_strata(
     );
     let bits = bx + by;
     let pixel_seed = mix(mix(seed ^ 0x2545f4914f6cdd1d) ^ (((y as u64) << 32) | x as u64));
+    let from = (from as usize).min(limit);
+    if cols.is_power_of_two() && rows.is_power_of_two() {
+        for k in from as u64..limit as u64 {
+            let code = if bits == 0 {
+                0
+            } else {
+                owen(k.reverse_bits() >> (64 - bits), bits, pixel_seed)
+            };
+            let (cx, cy) = morton_decode(code, bx, by);
+            out.push(cx + cy * cols);
+        }
+        return;
+    }
     for k in 0..1u64 << bits {
         let code = if bits == 0 {
             0
@@ -191,6 +219,7 @@ pub fn progressive_strata(
             }
         }
     }
+    out.drain(..from);
 }
 
 /// Nested uniform (Owen) scrambling of a `bits`-bit code: bit i is flipped by a hash of the
@@ -369,5 +398,11 @@ mod tests {
         progressive_strata(5, 1, 2, (5, 8), 40, &mut order);
         progressive_strata(5, 1, 2, (5, 8), 17, &mut other);
         assert_eq!(other, order[..17]);
+        // A later range is the same slice of the whole order, on either kind of grid.
+        progressive_strata_from(5, 1, 2, (5, 8), 9, 17, &mut other);
+        assert_eq!(other, order[9..17]);
+        progressive_strata(3, 10, 20, (8, 8), 64, &mut order);
+        progressive_strata_from(3, 10, 20, (8, 8), 13, 40, &mut other);
+        assert_eq!(other, order[13..40]);
     }
 }

@@ -49,18 +49,8 @@ pub fn render(
         (Start::Pass(mut sums), Some(pass)) => {
             let renderer = renderer.with_sample_order(SampleOrder::Progressive);
             let width = lease.settings.width;
-            let active = |x: u32, y: u32| {
-                pass.active_blocks
-                    .binary_search(&(block_of(width, x, y) as u32))
-                    .is_ok()
-            };
-            let done = renderer.render_tile_samples(
-                lease.rect,
-                pass.samples_from..pass.samples_to,
-                &active,
-                &mut sums,
-                cancel,
-            );
+            let samples = |x: u32, y: u32| pass.block_range(block_of(width, x, y) as u32);
+            let done = renderer.render_tile_samples(lease.rect, &samples, &mut sums, cancel);
             Ok(done.then(|| Output {
                 bytes: SumImage::to_bytes(&sums),
                 pass: true,

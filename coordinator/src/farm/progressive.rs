@@ -32,8 +32,9 @@ pub struct Progress {
     pub sums: SumImage,
     /// Samples per pixel of each block after the last finished pass.
     pub counts: Vec<u32>,
-    /// The blocks that sample in the current pass.
-    pub active: Vec<bool>,
+    /// Samples per pixel of each block after the current pass (`adaptive::plan`): a block
+    /// samples in it when its target is above its count.
+    pub targets: Vec<u32>,
     /// Every finished pass, in order.
     pub passes: Vec<PassInfo>,
     /// The current pass's finished tiles: their new sums, merged when the pass ends.
@@ -41,7 +42,7 @@ pub struct Progress {
 }
 
 /// Magic and version of the sums file.
-const MAGIC: &[u8; 8] = b"TSUMS\0\0\x01";
+const MAGIC: &[u8; 8] = b"TSUMS\0\0\x02";
 
 impl Progress {
     /// The passes of a job whose spec asks for them; None for a one-shot job.
@@ -50,14 +51,45 @@ impl Progress {
         let (w, h) = (spec.render.width, spec.render.height);
         let (cols, rows) = adaptive::blocks(w, h);
         let blocks = cols as usize * rows as usize;
-        Some(Progress {
+        let mut progress = Progress {
             rules,
             sums: SumImage::new(w, h),
             counts: vec![0; blocks],
-            active: vec![true; blocks],
+            targets: Vec::new(),
             passes: Vec::new(),
             pending: HashMap::new(),
-        })
+        };
+        progress.plan();
+        Some(progress)
+    }
+
+    /// The stopping rules as `adaptive::plan` takes them.
+    fn plan_rules(&self) -> adaptive::Rules {
+        adaptive::Rules {
+            noise_threshold: self.rules.noise_threshold,
+            spp_min: self.rules.spp_min,
+            spp_max: self.rules.spp_max,
+        }
+    }
+
+    /// Plans the next pass from the sums (a pure function of them: every farm plans alike).
+    fn plan(&mut self) {
+        self.targets = adaptive::plan(&self.sums, &self.counts, self.plan_rules());
+    }
+
+    /// Whether block `b` samples in the current pass.
+    pub fn active(&self, b: usize) -> bool {
+        self.targets[b] > self.counts[b]
+    }
+
+    /// The blocks that sample in the current pass.
+    pub fn active_count(&self) -> u32 {
+        (0..self.counts.len()).filter(|&b| self.active(b)).count() as u32
+    }
+
+    /// No block samples any more (the job ended, or its time ran out).
+    pub fn stop(&mut self) {
+        self.targets.clone_from(&self.counts);
     }
 
     /// The pass being rendered now (the count of finished ones).
@@ -65,28 +97,22 @@ impl Progress {
         self.passes.len() as u32
     }
 
-    /// The sample range of the current pass.
-    pub fn samples(&self) -> (u32, u32) {
-        let (min, max) = (self.rules.spp_min, self.rules.spp_max);
-        let pass = self.pass();
-        let from = match pass {
-            0 => 0,
-            p => adaptive::pass_target(p - 1, min, max),
-        };
-        (from, adaptive::pass_target(pass, min, max))
-    }
-
-    /// What the current pass asks of the tile at `rect`.
+    /// What the current pass asks of the tile at `rect`: each sampling block's range.
     pub fn lease(&self, rect: TileRect) -> PassLease {
-        let (from, to) = self.samples();
+        let active_blocks: Vec<u32> = adaptive::blocks_in(self.sums.width, rect)
+            .into_iter()
+            .filter(|&b| self.active(b as usize))
+            .collect();
+        let block_samples: Vec<[u32; 2]> = active_blocks
+            .iter()
+            .map(|&b| [self.counts[b as usize], self.targets[b as usize]])
+            .collect();
         PassLease {
             pass: self.pass(),
-            samples_from: from,
-            samples_to: to,
-            active_blocks: adaptive::blocks_in(self.sums.width, rect)
-                .into_iter()
-                .filter(|&b| self.active[b as usize])
-                .collect(),
+            samples_from: block_samples.iter().map(|r| r[0]).min().unwrap_or(0),
+            samples_to: block_samples.iter().map(|r| r[1]).max().unwrap_or(0),
+            active_blocks,
+            block_samples,
         }
     }
 
@@ -97,7 +123,7 @@ impl Progress {
             let rect = grid.rect(tile);
             let sampling = adaptive::blocks_in(self.sums.width, rect)
                 .iter()
-                .any(|&b| self.active[b as usize]);
+                .any(|&b| self.active(b as usize));
             if !sampling {
                 book.mark_done(tile);
             }
@@ -119,41 +145,74 @@ impl Progress {
         total / (w as f64 * h as f64)
     }
 
-    /// Ends the current pass: merges its tiles' sums, counts its samples, applies the
-    /// stopping rules and records it. Returns true when the job ends here (no block samples
-    /// any more, or `time_up`).
-    pub fn finish_pass(&mut self, grid: &TileGrid, wall_ms: u64, time_up: bool) -> bool {
+    /// Ends the current pass: merges its tiles' sums, counts its samples, plans the next
+    /// pass and records this one. Returns true when the job ends here (no block samples any
+    /// more, or `time_up`).
+    ///
+    /// A pass cut short by the time limit keeps what it finished: every sampling block whose
+    /// pixels all lie in tiles that landed takes its new sums and count; the others keep those
+    /// of the last pass (a block's pixels always share one count). Which tiles landed in time
+    /// depends on the clock, so a time-limited image is not reproducible; without a time
+    /// limit every tile lands and the image depends on the sums alone. Returns None when a
+    /// cut-short pass finished no block (nothing to record).
+    pub fn finish_pass(&mut self, grid: &TileGrid, wall_ms: u64, time_up: bool) -> Option<bool> {
+        let (w, h) = (self.sums.width, self.sums.height);
+        let mut landed = vec![false; w as usize * h as usize];
+        let mut merged = self.sums.clone();
         for (tile, sums) in self.pending.drain() {
-            self.sums.put_tile(grid.rect(tile), &sums);
+            let rect = grid.rect(tile);
+            merged.put_tile(rect, &sums);
+            for y in rect.y..rect.y + rect.height {
+                let row = (y * w) as usize;
+                landed[row + rect.x as usize..row + (rect.x + rect.width) as usize].fill(true);
+            }
         }
-        let (_, to) = self.samples();
-        let rules = &self.rules;
-        for (b, active) in self.active.iter_mut().enumerate() {
-            if !*active {
+        let cols = w.div_ceil(adaptive::BLOCK);
+        let mut finished = 0;
+        for b in 0..self.counts.len() {
+            if !self.active(b) {
                 continue;
             }
-            self.counts[b] = to;
-            let n = to;
-            // A threshold of 0 never stops a block on noise: even a flat block then goes to
-            // spp_max, so the image is exactly the one-shot spp_max render.
-            let quiet = rules.noise_threshold > 0.0
-                && n >= rules.spp_min
-                && self.sums.block_error(b, n) <= rules.noise_threshold;
-            *active = n < rules.spp_max && !quiet;
+            let (x0, y0) = (
+                (b as u32 % cols) * adaptive::BLOCK,
+                (b as u32 / cols) * adaptive::BLOCK,
+            );
+            let rect = TileRect::new(
+                x0,
+                y0,
+                adaptive::BLOCK.min(w - x0),
+                adaptive::BLOCK.min(h - y0),
+            );
+            let whole = (rect.y..rect.y + rect.height).all(|y| {
+                let row = (y * w) as usize;
+                landed[row + rect.x as usize..row + (rect.x + rect.width) as usize]
+                    .iter()
+                    .all(|l| *l)
+            });
+            if whole {
+                self.sums.put_tile(rect, &merged.tile(rect));
+                self.counts[b] = self.targets[b];
+                finished += 1;
+            }
         }
-        let active_blocks = self.active.iter().filter(|a| **a).count() as u32;
+        if finished == 0 && time_up {
+            self.stop();
+            return None;
+        }
+        self.plan();
+        let active_blocks = self.active_count();
+        let ends = active_blocks == 0 || time_up;
+        if ends {
+            self.stop();
+        }
         self.passes.push(PassInfo {
             pass: self.pass(),
             wall_s: wall_ms as f64 / 1000.0,
             spp_mean: self.spp_mean(),
             error: self.sums.error(&self.counts),
-            active_blocks,
+            active_blocks: self.active_count(),
         });
-        let ends = active_blocks == 0 || time_up;
-        if ends {
-            self.active.iter_mut().for_each(|a| *a = false);
-        }
-        ends
+        Some(ends)
     }
 
     /// The sums file: magic, finished passes, the last pass's wall time, the image size, the
@@ -169,7 +228,7 @@ impl Progress {
         for n in &self.counts {
             out.extend_from_slice(&n.to_le_bytes());
         }
-        out.extend(self.active.iter().map(|&a| a as u8));
+        out.extend((0..self.counts.len()).map(|b| self.active(b) as u8));
         out.extend_from_slice(&SumImage::to_bytes(&self.sums.data));
         out
     }
@@ -210,15 +269,22 @@ impl Progress {
         for (b, n) in progress.counts.iter_mut().enumerate() {
             *n = u32_at(header + 4 * b);
         }
-        for (b, a) in progress.active.iter_mut().enumerate() {
-            *a = bytes[header + 4 * blocks + b] != 0;
-        }
+        let sampling = bytes[header + 4 * blocks..header + 5 * blocks]
+            .iter()
+            .any(|&a| a != 0);
         progress.sums.data = SumImage::from_bytes(
             &bytes[header + 5 * blocks..],
             w as usize * h as usize,
             "the sums file",
         )
         .map_err(|e| e.to_string())?;
+        // The plan is a function of the sums: planned again, it is the pass the file's
+        // decisions were made for (the flags only say whether there is one).
+        if sampling {
+            progress.plan();
+        } else {
+            progress.stop();
+        }
         rows.retain(|r| r.pass < passes);
         if rows.len() as u32 + 1 == passes {
             // Its file was written but the crash came before its row: rebuilt from the file.
@@ -227,7 +293,7 @@ impl Progress {
                 wall_s: wall,
                 spp_mean: progress.spp_mean(),
                 error: progress.sums.error(&progress.counts),
-                active_blocks: progress.active.iter().filter(|a| **a).count() as u32,
+                active_blocks: progress.active_count(),
             });
         }
         if rows.len() as u32 != passes {
@@ -259,26 +325,27 @@ pub fn normalize(spec: &mut JobSpec) -> Result<()> {
 }
 
 impl Farm {
-    /// Ends a progressive job's pass whose last tile just landed, off the caller's thread.
-    pub(super) fn start_pass_end(&self, job_id: u64) {
+    /// Ends a progressive job's pass whose last tile just landed (or, `time_up`, whose time
+    /// ran out), off the caller's thread.
+    pub(super) fn start_pass_end(&self, job_id: u64, time_up: bool) {
         let Some(farm) = self.me.upgrade() else {
             return;
         };
         let spawned = std::thread::Builder::new()
             .name(format!("pass-{job_id}"))
-            .spawn(move || farm.end_pass_or_fail(job_id));
+            .spawn(move || farm.end_pass_or_fail(job_id, time_up));
         match spawned {
             Ok(handle) => {
                 let mut running = self.assemblies.lock().unwrap_or_else(|p| p.into_inner());
                 running.retain(|h| !h.is_finished());
                 running.push(handle);
             }
-            Err(_) => self.end_pass_or_fail(job_id),
+            Err(_) => self.end_pass_or_fail(job_id, time_up),
         }
     }
 
-    fn end_pass_or_fail(&self, job_id: u64) {
-        if let Err(e) = self.end_pass(job_id) {
+    fn end_pass_or_fail(&self, job_id: u64, time_up: bool) {
+        if let Err(e) = self.end_pass(job_id, time_up) {
             let error = format!("ending a pass failed: {e}");
             tracing::error!("job {job_id}: {error}");
             let now = self.now_ms();
@@ -292,8 +359,9 @@ impl Farm {
     }
 
     /// See the module notes: merge, decide, store the file, then the row; then the next pass
-    /// is queued, or the job's image assembled.
-    fn end_pass(&self, job_id: u64) -> Result<()> {
+    /// is queued, or the job's image assembled. `time_up`: the pass was cut short by the
+    /// time limit (its leases revoked), and the job ends with what it finished.
+    fn end_pass(&self, job_id: u64, time_up: bool) -> Result<()> {
         let now = self.now_ms();
         let (file, info, ends) = {
             let mut state = self.lock();
@@ -309,11 +377,17 @@ impl Farm {
             let Some(progress) = job.progress.as_mut() else {
                 return Ok(());
             };
-            let time_up = progress
-                .rules
-                .time_limit_s
-                .is_some_and(|limit| wall_ms as f64 >= limit * 1000.0);
-            let ends = progress.finish_pass(&grid, wall_ms, time_up);
+            let time_up = time_up
+                || progress
+                    .rules
+                    .time_limit_s
+                    .is_some_and(|limit| wall_ms as f64 >= limit * 1000.0);
+            let Some(ends) = progress.finish_pass(&grid, wall_ms, time_up) else {
+                // Cut short before any block finished: the last pass's image stands.
+                drop(state);
+                self.assemble_now(job_id);
+                return Ok(());
+            };
             let info = progress.passes.last().cloned().expect("a pass was pushed");
             (progress.encode(), info, ends)
         };
@@ -351,9 +425,10 @@ impl Farm {
         Ok(())
     }
 
-    /// Ends every progressive job whose time limit has passed with the image of its last
-    /// finished pass (the current pass's leases are revoked). A job still in its first pass
-    /// finishes that pass first: it has no image yet. Called by the reaper.
+    /// Ends every progressive job whose time limit has passed: the current pass's leases are
+    /// revoked and the job ends with the blocks that pass finished on top of the last
+    /// finished pass. A job still in its first pass finishes that pass first: it has no
+    /// image yet. Called by the reaper (and after each landed tile, see `complete_sums`).
     pub fn check_time_limits(&self) -> Result<()> {
         let now = self.now_ms();
         let due: Vec<u64> = {
@@ -375,15 +450,21 @@ impl Farm {
                 .collect()
         };
         for job_id in due {
-            let stopped = self.lock().stop_passes(job_id)?;
-            self.flush()?;
-            if stopped {
-                tracing::info!("job {job_id}: time limit reached; ending with its last pass");
-                for tile in 0..self.lock().job(job_id)?.total() {
-                    self.events.tile(job_id, tile);
-                }
-                self.start_assembly(job_id);
+            self.end_for_time_limit(job_id)?;
+        }
+        Ok(())
+    }
+
+    /// Cuts job `job_id`'s current pass short (see `check_time_limits`).
+    fn end_for_time_limit(&self, job_id: u64) -> Result<()> {
+        let stopped = self.lock().stop_passes(job_id)?;
+        self.flush()?;
+        if stopped {
+            tracing::info!("job {job_id}: time limit reached; ending with what its pass finished");
+            for tile in 0..self.lock().job(job_id)?.total() {
+                self.events.tile(job_id, tile);
             }
+            self.start_pass_end(job_id, true);
         }
         Ok(())
     }
@@ -429,12 +510,18 @@ impl Farm {
         let mut state = self.lock();
         let lease = state.live(lease_id)?.clone();
         let done = state.complete(lease_id, now)?;
-        if let Some(progress) = state
-            .jobs
-            .get_mut(&lease.job_id)
-            .and_then(|j| j.progress.as_mut())
-        {
-            progress.pending.insert(lease.tile, sums);
+        let mut time_up = false;
+        if let Some(job) = state.jobs.get_mut(&lease.job_id) {
+            if let (Some(progress), Some(started)) = (job.progress.as_mut(), job.started_ms) {
+                progress.pending.insert(lease.tile, sums);
+                // Checked here too, not only by the reaper (every 250 ms, a large part of a
+                // sub-second render): a landed tile past the limit ends the job at once.
+                time_up = progress.pass() > 0
+                    && progress
+                        .rules
+                        .time_limit_s
+                        .is_some_and(|limit| now.saturating_sub(started) as f64 >= limit * 1000.0);
+            }
         }
         drop(state);
         self.metrics
@@ -442,7 +529,9 @@ impl Farm {
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         self.events.tile(lease.job_id, lease.tile);
         if done.last {
-            self.start_pass_end(lease.job_id);
+            self.start_pass_end(lease.job_id, false);
+        } else if time_up {
+            self.end_for_time_limit(lease.job_id)?;
         }
         Ok(protocol::Completion {
             tiles_done: done.tiles_done,

@@ -382,9 +382,10 @@ impl State {
         Ok(())
     }
 
-    /// A progressive job's current pass is abandoned (its time is up): its leases are
-    /// revoked, its queue dropped and its image is to be assembled from the last finished
-    /// pass. False if the job is not a progressive one that is still rendering passes.
+    /// A progressive job's current pass is cut short (its time is up): its leases are
+    /// revoked and its queue dropped; the pass end then keeps the blocks its landed tiles
+    /// finished and the job's image is assembled. False if the job is not a progressive one
+    /// that is still rendering passes.
     pub fn stop_passes(&mut self, job_id: u64) -> Result<bool> {
         let job = self.job(job_id)?;
         if !job.is_active() || job.assembling || job.progress.is_none() {
@@ -404,11 +405,8 @@ impl State {
         }
         let job = self.job_mut(job_id)?;
         job.tiles.clear_queue();
+        // The tiles that landed stay pending: the pass end keeps the blocks they finished.
         job.assembling = true;
-        if let Some(progress) = job.progress.as_mut() {
-            progress.pending.clear();
-            progress.active.iter_mut().for_each(|a| *a = false);
-        }
         Ok(true)
     }
 

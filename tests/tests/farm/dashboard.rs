@@ -493,7 +493,7 @@ async fn the_dashboard_shows_a_progressive_job_refine_pass_by_pass() {
     );
     let (_driver, driver_url) = start_driver(&driver, tmp.path().join("chromedriver.log")).await;
     let browser = open_browser(&chromium, &driver_url).await;
-    // Nine passes (2, 3, 4, 6, 9, 13, 19, 28, 32 spp) on one thread: several seconds.
+    // About nine passes (mean spp 2, 3, 4.5, ... up to 32) on one thread: several seconds.
     let mut spec = small_spec(1, 40);
     spec.render.width = 240;
     spec.render.height = 180;

@@ -94,7 +94,11 @@ async fn a_served_progressive_job_converges_through_worker_processes() {
     assert_eq!(done.spp_mean, Some(8.0));
     let passes = client.convergence(job.id).await.unwrap().passes;
     let spp: Vec<f64> = passes.iter().map(|p| p.spp_mean).collect();
-    assert_eq!(spp, [2.0, 3.0, 4.0, 6.0, 8.0]);
+    // Each pass adds about half the image's samples, where the noise is, up to spp_max.
+    assert!(
+        spp[0] == 2.0 && spp.windows(2).all(|w| w[1] > w[0]) && spp.len() >= 3,
+        "{spp:?}"
+    );
     assert!(passes.last().unwrap().error < passes[0].error, "{passes:?}");
     let map = client.samples_png(job.id).await.unwrap();
     assert!(map.starts_with(b"\x89PNG"));
