@@ -138,9 +138,12 @@ impl<'a> Renderer<'a> {
         let mut image = Image::new(w, h);
         let total = w as u64 * h as u64;
         let done = AtomicU64::new(0);
+        // One row per rayon job, as in `render_tile`: rows cost unevenly (glass, meshes), and
+        // runs of several rows left a thread idle at the end while another finished its run.
         image
             .pixels
             .par_chunks_mut(3 * w as usize)
+            .with_max_len(1)
             .enumerate()
             .for_each(|(row, out)| {
                 self.render_row(0, row as u32, out);

@@ -43,6 +43,11 @@ pub struct Progress {
 
 /// Magic and version of the sums file.
 const MAGIC: &[u8; 8] = b"TSUMS\0\0\x02";
+/// Version 1 (before the per-pixel ray count): still read, so a job left mid-run by an older
+/// coordinator resumes instead of failing.
+const MAGIC_V1: &[u8; 8] = b"TSUMS\0\0\x01";
+/// f64 sums per pixel in a version-1 file: r, g, b, luminance, odd-parity luminance.
+const SUMS_V1: usize = 5;
 
 impl Progress {
     /// The passes of a job whose spec asks for them; None for a one-shot job.
@@ -249,8 +254,10 @@ impl Progress {
         let blocks = progress.counts.len();
         let (w, h) = (progress.sums.width, progress.sums.height);
         let header = MAGIC.len() + 4 + 8 + 4 + 4;
-        let expected = header + blocks * 5 + w as usize * h as usize * adaptive::SUMS * 8;
-        if bytes.len() != expected || &bytes[..MAGIC.len()] != MAGIC {
+        let v1 = bytes.len() >= MAGIC_V1.len() && &bytes[..MAGIC_V1.len()] == MAGIC_V1;
+        let per_pixel = if v1 { SUMS_V1 } else { adaptive::SUMS };
+        let expected = header + blocks * 5 + w as usize * h as usize * per_pixel * 8;
+        if bytes.len() != expected || !(v1 || &bytes[..MAGIC.len()] == MAGIC) {
             return Err(format!(
                 "its sums file is not a {w}x{h} progressive state ({} bytes, expected {expected})",
                 bytes.len()
@@ -272,12 +279,13 @@ impl Progress {
         let sampling = bytes[header + 4 * blocks..header + 5 * blocks]
             .iter()
             .any(|&a| a != 0);
-        progress.sums.data = SumImage::from_bytes(
-            &bytes[header + 5 * blocks..],
-            w as usize * h as usize,
-            "the sums file",
-        )
-        .map_err(|e| e.to_string())?;
+        let body = &bytes[header + 5 * blocks..];
+        progress.sums.data = if v1 {
+            upgrade_v1_sums(body, w, &progress.counts)
+        } else {
+            SumImage::from_bytes(body, w as usize * h as usize, "the sums file")
+                .map_err(|e| e.to_string())?
+        };
         // The plan is a function of the sums: planned again, it is the pass the file's
         // decisions were made for (the flags only say whether there is one).
         if sampling {
@@ -305,6 +313,22 @@ impl Progress {
         progress.passes = rows;
         Ok(Some(progress))
     }
+}
+
+/// A version-1 file's sums with the ray count added. Version 1 did not count rays; one ray
+/// per sample (the block's sample count) stands in for it: the count only weighs what a sample
+/// costs when later passes are planned, never a pixel's value.
+fn upgrade_v1_sums(body: &[u8], width: u32, counts: &[u32]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(body.len() / SUMS_V1 * adaptive::SUMS);
+    for (pixel, old) in body.chunks_exact(SUMS_V1 * 8).enumerate() {
+        out.extend(
+            old.chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
+        );
+        let (x, y) = (pixel as u32 % width, pixel as u32 / width);
+        out.push(counts[adaptive::block_of(width, x, y)] as f64);
+    }
+    out
 }
 
 /// Checks a progressive submission and makes its spec say what it renders: the strata of

@@ -367,3 +367,41 @@ fn bad_rules_and_pixels_for_a_pass_are_refused() {
         Err(FarmError::Conflict(_))
     ));
 }
+
+#[test]
+fn a_version_1_sums_file_from_an_older_coordinator_still_resumes() {
+    let mut spec = JobSpec::default();
+    spec.render.width = 24;
+    spec.render.height = 16;
+    spec.adaptive = Some(rules(0.0, 2, 16));
+    let mut progress = progressive::Progress::new(&spec).unwrap();
+    for (i, v) in progress.sums.data.iter_mut().enumerate() {
+        *v = i as f64 * 0.5;
+    }
+    progress.counts.iter_mut().for_each(|n| *n = 4);
+    let current = progressive::Progress::encode(&progress);
+    // The same state as version 1 wrote it: version byte 1, five sums a pixel (no ray count).
+    let header = 8 + 4 + 8 + 4 + 4 + progress.counts.len() * 5;
+    let mut old = current[..header].to_vec();
+    old[7] = 1;
+    for pixel in current[header..].chunks_exact(adaptive::SUMS * 8) {
+        old.extend_from_slice(&pixel[..5 * 8]);
+    }
+    let restored = progressive::Progress::restore(&spec, Some(&old), vec![])
+        .unwrap()
+        .unwrap();
+    assert_eq!(restored.counts, progress.counts);
+    for (new, was) in restored
+        .sums
+        .data
+        .chunks_exact(adaptive::SUMS)
+        .zip(progress.sums.data.chunks_exact(adaptive::SUMS))
+    {
+        assert_eq!(new[..5], was[..5], "a version-1 pixel's sums are kept");
+        assert_eq!(new[5], 4.0, "one ray per sample stands in for the missing count");
+    }
+    // A file of neither version is still refused.
+    let mut bad = old.clone();
+    bad[7] = 9;
+    assert!(progressive::Progress::restore(&spec, Some(&bad), vec![]).is_err());
+}
