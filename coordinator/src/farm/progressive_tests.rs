@@ -398,7 +398,10 @@ fn a_version_1_sums_file_from_an_older_coordinator_still_resumes() {
         .zip(progress.sums.data.chunks_exact(adaptive::SUMS))
     {
         assert_eq!(new[..5], was[..5], "a version-1 pixel's sums are kept");
-        assert_eq!(new[5], 4.0, "one ray per sample stands in for the missing count");
+        assert_eq!(
+            new[5], 4.0,
+            "one ray per sample stands in for the missing count"
+        );
     }
     // A file of neither version is still refused.
     let mut bad = old.clone();
