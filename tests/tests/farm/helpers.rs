@@ -103,12 +103,19 @@ pub fn bins() -> &'static Bins {
     })
 }
 
-/// Whether `bin` exists and is newer than every file under `sources` (paths in the workspace).
+/// Whether `bin` exists and is newer than every file it was compiled from: the files cargo's
+/// dep-info (`<bin>.d`) lists, or, without one, every file under `sources` (paths in the
+/// workspace). The dep-info leaves out `#[cfg(test)]` modules, which the binary does not
+/// contain and cargo does not rebuild it for.
 fn check_fresh(bin: &Path, sources: &[&str]) -> Result<(), String> {
     let built = std::fs::metadata(bin)
         .and_then(|m| m.modified())
         .map_err(|e| format!("{} was not built ({e}).", bin.display()))?;
-    let mut pending: Vec<PathBuf> = sources.iter().map(|s| workspace().join(s)).collect();
+    let dep_info = std::fs::read_to_string(bin.with_extension("d")).ok();
+    let mut pending: Vec<PathBuf> = match dep_info.as_deref().and_then(dep_info_inputs) {
+        Some(inputs) => inputs,
+        None => sources.iter().map(|s| workspace().join(s)).collect(),
+    };
     while let Some(path) = pending.pop() {
         let meta = std::fs::metadata(&path).map_err(|e| format!("{}: {e}", path.display()))?;
         if meta.is_dir() {
@@ -124,6 +131,31 @@ fn check_fresh(bin: &Path, sources: &[&str]) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// The inputs a cargo dep-info file lists for its first target (`target: a b\ c ...`, spaces
+/// in names escaped); None if it lists none.
+fn dep_info_inputs(text: &str) -> Option<Vec<PathBuf>> {
+    let line = text.lines().next()?;
+    let (_, inputs) = line.split_once(": ")?;
+    let mut out = Vec::new();
+    let mut name = String::new();
+    let mut chars = inputs.chars();
+    while let Some(c) = chars.next() {
+        match c {
+            '\\' => name.extend(chars.next()),
+            ' ' => {
+                if !name.is_empty() {
+                    out.push(PathBuf::from(std::mem::take(&mut name)));
+                }
+            }
+            c => name.push(c),
+        }
+    }
+    if !name.is_empty() {
+        out.push(PathBuf::from(name));
+    }
+    (!out.is_empty()).then_some(out)
 }
 
 /// A child process that is killed when dropped, with its stderr in a file.
@@ -342,4 +374,18 @@ pub fn rendered_tiles(logs: &[String], job: u64) -> std::collections::BTreeMap<u
         }
     }
     counts
+}
+
+#[test]
+fn dep_info_lists_each_input_with_escaped_spaces_kept() {
+    let text = "/t/release/coordinator: /w/a.rs /w/my\\ file.rs  /w/b.html\n\n/w/a.rs:\n";
+    assert_eq!(
+        dep_info_inputs(text),
+        Some(vec![
+            PathBuf::from("/w/a.rs"),
+            PathBuf::from("/w/my file.rs"),
+            PathBuf::from("/w/b.html"),
+        ])
+    );
+    assert_eq!(dep_info_inputs("/t/release/tracer:\n"), None);
 }
