@@ -39,6 +39,8 @@ pub mod sampler;
 pub mod scene;
 pub mod settings;
 pub mod shade;
+#[cfg(test)]
+mod test_rng;
 pub mod texture;
 pub mod world;
 

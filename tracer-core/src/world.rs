@@ -915,13 +915,7 @@ mod tests {
     #[test]
     fn a_pixels_frustum_slots_give_its_eye_rays_the_same_hits() {
         use crate::camera::Camera;
-        let mut state = 5u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_rng::uniform(5);
         // Spheres and triangles scattered in front of a camera at the origin looking down −z.
         let spheres = (0..40)
             .map(|i| Sphere {
@@ -996,13 +990,7 @@ mod tests {
 
     #[test]
     fn a_remembered_blocker_gives_the_walks_answer() {
-        let mut state = 17u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_rng::uniform(17);
         let spheres = (0..30)
             .map(|i| Sphere {
                 transform: Transform::new(

@@ -525,13 +525,7 @@ mod tests {
 
     fn boxes(n: usize) -> Vec<Aabb> {
         // A deterministic scatter of small boxes.
-        let mut state = 12345u64;
-        let mut next = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_rng::uniform(12345);
         (0..n)
             .map(|_| {
                 let c = DVec3::new(next(), next(), next()) * 100.0;
@@ -642,13 +636,7 @@ mod tests {
 
     #[test]
     fn f32_traversal_never_culls_a_box_hit_at_any_scale() {
-        let mut state = 987654321u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_rng::uniform(987654321);
         for (scale, offset) in [
             (1e-4, 0.0),
             (1e-4, 3.7),
@@ -717,13 +705,7 @@ mod tests {
             return;
         }
         let bvh = Bvh::build(&boxes(3000));
-        let mut state = 42u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_rng::uniform(42);
         let mut hits = 0;
         for i in 0..2000 {
             let origin = DVec3::new(next(), next(), next()) * 140.0 - 20.0;

@@ -382,23 +382,13 @@ mod tests {
         )
     }
 
-    /// A deterministic uniform generator in [0, 1).
-    fn rng(mut state: u64) -> impl FnMut() -> f64 {
-        move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        }
-    }
-
     fn point(next: &mut impl FnMut() -> f64) -> DVec3 {
         DVec3::new(next(), next(), next())
     }
 
     #[test]
     fn the_f32_pretest_never_rejects_a_hit_and_rejects_clear_misses() {
-        let mut next = rng(42);
+        let mut next = crate::test_rng::uniform(42);
         for (size, offset) in [
             (1.0, 0.0),
             (1e-3, 0.0),

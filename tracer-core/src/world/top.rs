@@ -353,13 +353,7 @@ mod tests {
     /// Every box a ray meets in f64 is handed out, at scales from 1e-4 to 1e5.
     #[test]
     fn the_walk_never_skips_a_box_the_ray_meets() {
-        let mut state = 77u64;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut next = crate::test_rng::uniform(77);
         for (scale, offset) in [(1e-4, 0.0), (1e-4, 3.7), (1.0, -2.0), (1e5, 1e5)] {
             let prims: Vec<Aabb> = (0..300)
                 .map(|_| {
