@@ -103,12 +103,7 @@ const SHARE_FLOOR: f64 = 0.1;
 pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
     let spp_max = rules.spp_max.max(1);
     let spp_min = rules.spp_min.clamp(1, spp_max);
-    let (w, h) = (sums.width, sums.height);
-    let cols = w.div_ceil(BLOCK);
-    let pixels = |b: usize| {
-        let (bx, by) = (b as u32 % cols, b as u32 / cols);
-        (BLOCK.min(w - bx * BLOCK) * BLOCK.min(h - by * BLOCK)) as f64
-    };
+    let pixels = |b: usize| block_rect(sums.width, sums.height, b).pixel_count() as f64;
     // (count, cap, share) of each block still sampling; None for a done one.
     let mut open: Vec<Option<(u32, u32, f64)>> = Vec::with_capacity(counts.len());
     // Each block's cost of one more sample per pixel (its rays per sample × its pixels).
@@ -253,6 +248,14 @@ pub fn block_of(width: u32, x: u32, y: u32) -> usize {
     (x / BLOCK + (y / BLOCK) * width.div_ceil(BLOCK)) as usize
 }
 
+/// The pixels of block `block` of a `width`×`height` image (blocks at the right and bottom
+/// edges are cut to the image).
+pub fn block_rect(width: u32, height: u32, block: usize) -> TileRect {
+    let cols = width.div_ceil(BLOCK) as usize;
+    let (x, y) = ((block % cols) as u32 * BLOCK, (block / cols) as u32 * BLOCK);
+    TileRect::new(x, y, BLOCK.min(width - x), BLOCK.min(height - y))
+}
+
 /// Every decision block that intersects `rect`, as block indices.
 pub fn blocks_in(width: u32, rect: TileRect) -> Vec<u32> {
     let mut out = Vec::new();
@@ -328,11 +331,10 @@ impl SumImage {
 
     /// The rays block `block`'s samples traced so far.
     fn block_rays(&self, block: usize) -> f64 {
-        let cols = self.width.div_ceil(BLOCK) as usize;
-        let (bx, by) = ((block % cols) as u32 * BLOCK, (block / cols) as u32 * BLOCK);
+        let r = block_rect(self.width, self.height, block);
         let mut rays = 0.0;
-        for y in by..(by + BLOCK).min(self.height) {
-            for x in bx..(bx + BLOCK).min(self.width) {
+        for y in r.y..r.y + r.height {
+            for x in r.x..r.x + r.width {
                 rays += self.data[(y as usize * self.width as usize + x as usize) * SUMS + 5];
             }
         }
@@ -341,13 +343,12 @@ impl SumImage {
 
     /// Σ|A − B|/2 and Σ max(I, floor) over the block's pixels.
     fn block_error_parts(&self, block: usize, n: u32) -> (f64, f64) {
-        let cols = self.width.div_ceil(BLOCK) as usize;
-        let (bx, by) = ((block % cols) as u32 * BLOCK, (block / cols) as u32 * BLOCK);
+        let r = block_rect(self.width, self.height, block);
         let second = second_half_count(n);
         let (first_n, second_n) = ((n - second.min(n)) as f64, second as f64);
         let (mut num, mut den) = (0.0, 0.0);
-        for y in by..(by + BLOCK).min(self.height) {
-            for x in bx..(bx + BLOCK).min(self.width) {
+        for y in r.y..r.y + r.height {
+            for x in r.x..r.x + r.width {
                 let p = (y as usize * self.width as usize + x as usize) * SUMS;
                 let (all, second) = (self.data[p + 3], self.data[p + 4]);
                 if n >= 2 {

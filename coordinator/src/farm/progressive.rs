@@ -139,14 +139,9 @@ impl Progress {
     /// Mean samples per pixel after the last finished pass.
     pub fn spp_mean(&self) -> f64 {
         let (w, h) = (self.sums.width, self.sums.height);
-        let cols = w.div_ceil(adaptive::BLOCK);
-        let mut total = 0.0;
-        for (b, &n) in self.counts.iter().enumerate() {
-            let (bx, by) = (b as u32 % cols, b as u32 / cols);
-            let bw = adaptive::BLOCK.min(w - bx * adaptive::BLOCK);
-            let bh = adaptive::BLOCK.min(h - by * adaptive::BLOCK);
-            total += n as f64 * (bw * bh) as f64;
-        }
+        let total: f64 = (self.counts.iter().enumerate())
+            .map(|(b, &n)| n as f64 * adaptive::block_rect(w, h, b).pixel_count() as f64)
+            .sum();
         total / (w as f64 * h as f64)
     }
 
@@ -172,22 +167,12 @@ impl Progress {
                 landed[row + rect.x as usize..row + (rect.x + rect.width) as usize].fill(true);
             }
         }
-        let cols = w.div_ceil(adaptive::BLOCK);
         let mut finished = 0;
         for b in 0..self.counts.len() {
             if !self.active(b) {
                 continue;
             }
-            let (x0, y0) = (
-                (b as u32 % cols) * adaptive::BLOCK,
-                (b as u32 / cols) * adaptive::BLOCK,
-            );
-            let rect = TileRect::new(
-                x0,
-                y0,
-                adaptive::BLOCK.min(w - x0),
-                adaptive::BLOCK.min(h - y0),
-            );
+            let rect = adaptive::block_rect(w, h, b);
             let whole = (rect.y..rect.y + rect.height).all(|y| {
                 let row = (y * w) as usize;
                 landed[row + rect.x as usize..row + (rect.x + rect.width) as usize]
