@@ -4,7 +4,8 @@
 //! `cargo build --release --example bench_measure`, then e.g.
 //! `perf stat -e cycles:u,instructions:u $CARGO_TARGET_DIR/release/examples/bench_measure
 //!  ../shared/scenes/course/dragon.scene incoherent 10`
-//! (measure: primary, incoherent, shadow or build; the number of passes).
+//! (measure: primary (in packets), primary-single (one ray at a time), incoherent, shadow or
+//! build; the number of passes).
 
 use std::path::Path;
 use std::time::Instant;
@@ -15,7 +16,7 @@ use tracer_core::{RenderSettings, Scene};
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let [_, scene, measure, passes] = args.as_slice() else {
-        return Err("usage: bench_measure SCENE primary|incoherent|shadow|build PASSES".into());
+        return Err("usage: bench_measure SCENE primary|primary-single|incoherent|shadow|build PASSES".into());
     };
     let passes: usize = passes.parse()?;
     let scene = Scene::load(Path::new(scene))?;
@@ -27,6 +28,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let measure = match measure.as_str() {
         "primary" => Some(Measure::Primary),
+        "primary-single" => Some(Measure::PrimarySingle),
         "incoherent" => Some(Measure::Incoherent),
         "shadow" => Some(Measure::Shadow),
         "build" => None,

@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 use rayon::prelude::*;
 use serde::Serialize;
 
+use crate::accel::PACKET;
 use crate::geometry::Ray;
 use crate::render::{RenderError, Renderer};
 use crate::sampler::{uniform_sphere, Rng};
@@ -37,10 +38,19 @@ pub struct BenchReport {
 /// end ran alone for up to a fifth of the measure.
 const CHUNK: usize = 256;
 
+/// Primary rays are traced as packets of `PACKET_SIDE`² pixels ([`World::intersect_packet`]),
+/// [`TILE_PACKETS`] side by side per parallel work item (as many rays as [`CHUNK`]).
+const PACKET_SIDE: usize = 8;
+const TILE_PACKETS: usize = 4;
+const _: () = assert!(PACKET_SIDE * PACKET_SIDE <= PACKET);
+
 /// The rays of the bench's measures on a scene, as `tracer bench` traces them.
 pub struct RaySets {
-    /// One per pixel centre, traced for hits with t in (`near`, `far`).
+    /// One per pixel centre, row by row from the top, traced for hits with t in (`near`,
+    /// `far`).
     pub primary: Vec<Ray>,
+    /// Pixels per row of `primary`.
+    pub width: usize,
     pub near: f64,
     pub far: f64,
     /// One uniformly random direction from every primary hit, offset as the shader would.
@@ -53,7 +63,10 @@ pub struct RaySets {
 /// One of the ray measures of [`run`], for [`trace`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Measure {
+    /// Primary rays in packets of 8×8 pixels, as `tracer bench` traces them.
     Primary,
+    /// The same rays one at a time ([`World::intersect`]), for comparison.
+    PrimarySingle,
     Incoherent,
     Shadow,
 }
@@ -105,6 +118,7 @@ impl RaySets {
         };
         Ok(RaySets {
             primary,
+            width: w as usize,
             near,
             far,
             incoherent,
@@ -115,7 +129,7 @@ impl RaySets {
     /// The number of rays of `measure`.
     pub fn len(&self, measure: Measure) -> usize {
         match measure {
-            Measure::Primary => self.primary.len(),
+            Measure::Primary | Measure::PrimarySingle => self.primary.len(),
             Measure::Incoherent => self.incoherent.len(),
             Measure::Shadow => self.shadow.len(),
         }
@@ -125,19 +139,60 @@ impl RaySets {
 /// Traces the rays of `measure` on the calling thread; returns how many hit (or, for shadow
 /// rays, are blocked). For profiling one measure alone (`examples/bench_measure.rs`).
 pub fn trace(scene: &Scene, rays: &RaySets, measure: Measure) -> usize {
-    trace_chunk(scene, rays, measure, 0..rays.len(measure))
+    (0..work_items(rays, measure))
+        .map(|item| trace_item(scene, rays, measure, item))
+        .sum()
 }
 
-/// [`trace`] over the rays in `range`.
-fn trace_chunk(
-    scene: &Scene,
-    rays: &RaySets,
-    measure: Measure,
-    range: std::ops::Range<usize>,
-) -> usize {
-    let world = &scene.world;
+/// The parallel work items of `measure`: [`CHUNK`] rays each, or for packets of primary
+/// rays a tile of [`TILE_PACKETS`] packets side by side.
+fn work_items(rays: &RaySets, measure: Measure) -> usize {
     match measure {
-        Measure::Primary => rays.primary[range]
+        Measure::Primary => {
+            let height = rays.primary.len().checked_div(rays.width).unwrap_or(0);
+            rays.width.div_ceil(PACKET_SIDE * TILE_PACKETS) * height.div_ceil(PACKET_SIDE)
+        }
+        _ => rays.len(measure).div_ceil(CHUNK),
+    }
+}
+
+/// [`trace`] over work item `item` of [`work_items`].
+fn trace_item(scene: &Scene, rays: &RaySets, measure: Measure, item: usize) -> usize {
+    let world = &scene.world;
+    let n = rays.len(measure);
+    let range = item * CHUNK..((item + 1) * CHUNK).min(n);
+    match measure {
+        Measure::Primary => {
+            let width = rays.width;
+            let height = n / width;
+            let tiles_across = width.div_ceil(PACKET_SIDE * TILE_PACKETS);
+            let (x0, y0) = (
+                item % tiles_across * PACKET_SIDE * TILE_PACKETS,
+                item / tiles_across * PACKET_SIDE,
+            );
+            let mut hit = 0;
+            let mut packet = [rays.primary[0]; PACKET];
+            let mut hits = [None; PACKET];
+            for px in (x0..(x0 + PACKET_SIDE * TILE_PACKETS).min(width)).step_by(PACKET_SIDE) {
+                let mut len = 0;
+                for y in y0..(y0 + PACKET_SIDE).min(height) {
+                    for x in px..(px + PACKET_SIDE).min(width) {
+                        packet[len] = rays.primary[y * width + x];
+                        len += 1;
+                    }
+                }
+                world.intersect_packet(
+                    &packet[..len],
+                    rays.near,
+                    rays.far,
+                    None,
+                    &mut hits[..len],
+                );
+                hit += hits[..len].iter().filter(|h| h.is_some()).count();
+            }
+            hit
+        }
+        Measure::PrimarySingle => rays.primary[range]
             .iter()
             .filter(|r| world.intersect(r, rays.near, rays.far).is_some())
             .count(),
@@ -222,14 +277,13 @@ pub fn mesh_bytes(mesh: &Mesh) -> usize {
         + size_of_val(&mesh.bvh.order[..])
 }
 
-/// Traces `measure`'s rays in parallel, [`CHUNK`] rays per rayon job.
+/// Traces `measure`'s rays in parallel, one rayon job per work item ([`work_items`]).
 fn time_rays(scene: &Scene, rays: &RaySets, measure: Measure) -> Duration {
-    let n = rays.len(measure);
     let started = Instant::now();
-    let hits: usize = (0..n.div_ceil(CHUNK))
+    let hits: usize = (0..work_items(rays, measure))
         .into_par_iter()
         .with_max_len(1)
-        .map(|c| trace_chunk(scene, rays, measure, c * CHUNK..((c + 1) * CHUNK).min(n)))
+        .map(|item| trace_item(scene, rays, measure, item))
         .sum();
     std::hint::black_box(hits);
     started.elapsed()

@@ -9,15 +9,17 @@ use std::sync::Arc;
 use glam::DVec3;
 use rayon::prelude::*;
 
+use crate::accel::PACKET;
 use crate::adaptive::{in_second_half, luminance, SUMS};
-use crate::camera::{Camera, EyeRays};
+use crate::camera::{Camera, EyeRays, EyeSample};
 use crate::film::Image;
 use crate::photon::{caustic_map, CausticMap};
 use crate::sampler::SampleOrder;
 use crate::scene::Scene;
 use crate::settings::{RenderSettings, SettingsError, TileRect};
-use crate::shade::Tracer;
-use crate::world::World;
+use crate::geometry::Ray;
+use crate::shade::{Eye, RayCounts, Tracer};
+use crate::world::{Hit, World};
 
 /// Largest recursion depth accepted; the ray budget bounds the work in any case.
 pub const MAX_DEPTH_LIMIT: u32 = 64;
@@ -249,6 +251,7 @@ impl<'a> Renderer<'a> {
             y: self.settings.height - 1 - row,
             order: Vec::new(),
             slots: Vec::new(),
+            eyes: Vec::new(),
             radiance_rays: 0,
             shadow_rays: 0,
         };
@@ -274,6 +277,8 @@ struct RowShader<'r> {
     /// The top-level slots the current pixel's eye-ray frustum meets (see
     /// [`World::frustum_slots`]); kept for the row, so no allocation per pixel.
     slots: Vec<u32>,
+    /// The eye samples of the current packet.
+    eyes: Vec<EyeSample>,
     radiance_rays: u64,
     shadow_rays: u64,
 }
@@ -306,34 +311,93 @@ impl RowShader<'_> {
             None => None,
         };
         let first = samples.start;
-        for sample in samples {
-            let stratum = if self.order.is_empty() {
+        let stratum = |order: &[u32], sample: u32| {
+            if order.is_empty() {
                 sample
             } else {
-                self.order[(sample - first) as usize]
-            };
-            let mut ray = eye.sample_in(x, self.y, sample, stratum);
-            let (color, counts) = self.tracer.sample(
-                &ray.ray,
-                ray.near,
-                ray.far,
-                &mut ray.rng,
-                ray.gloss,
-                frustum,
-            );
-            self.radiance_rays += counts.radiance as u64;
-            self.shadow_rays += counts.shadow as u64;
-            let color = sanitize(color);
-            acc.rgb += color;
-            if ESTIMATE {
-                let lum = luminance(color.x, color.y, color.z);
-                acc.lum += lum;
-                if in_second_half(sample) {
-                    acc.lum_odd += lum;
-                }
-                acc.rays += (counts.radiance + counts.shadow) as f64;
+                order[(sample - first) as usize]
             }
+        };
+        let Some(slots) = frustum.filter(|_| samples.len() >= MIN_PACKET) else {
+            for sample in samples {
+                let mut ray = eye.sample_in(x, self.y, sample, stratum(&self.order, sample));
+                let (color, counts) = self.tracer.sample(
+                    &ray.ray,
+                    ray.near,
+                    ray.far,
+                    &mut ray.rng,
+                    ray.gloss,
+                    frustum.map_or(Eye::Walk, Eye::Among),
+                );
+                add_sample::<ESTIMATE>(acc, sample, color, counts);
+                self.radiance_rays += counts.radiance as u64;
+                self.shadow_rays += counts.shadow as u64;
+            }
+            return;
+        };
+        // The pixel's eye rays are coherent: their hits are found a packet at a time (the
+        // same hits as one at a time), then each sample is shaded in order.
+        let mut start = samples.start;
+        while start < samples.end {
+            let end = samples.end.min(start + PACKET as u32);
+            self.eyes.clear();
+            self.eyes.extend(
+                (start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))),
+            );
+            let n = self.eyes.len();
+            let mut rays = [Ray::new(DVec3::ONE, DVec3::ONE); PACKET];
+            for (r, e) in rays.iter_mut().zip(&self.eyes) {
+                *r = e.ray;
+            }
+            let (near, far) = (self.eyes[0].near, self.eyes[0].far);
+            let mut hits: [Option<Hit>; PACKET] = [None; PACKET];
+            if self.eyes.iter().all(|e| e.near == near && e.far == far) {
+                self.world
+                    .intersect_packet(&rays[..n], near, far, Some(slots), &mut hits[..n]);
+            } else {
+                for (h, e) in hits.iter_mut().zip(&self.eyes) {
+                    *h = self.world.intersect_among(&e.ray, e.near, e.far, slots);
+                }
+            }
+            for (k, mut ray) in self.eyes.drain(..).enumerate() {
+                let (color, counts) = self.tracer.sample(
+                    &ray.ray,
+                    ray.near,
+                    ray.far,
+                    &mut ray.rng,
+                    ray.gloss,
+                    Eye::Found(hits[k]),
+                );
+                add_sample::<ESTIMATE>(acc, start + k as u32, color, counts);
+                self.radiance_rays += counts.radiance as u64;
+                self.shadow_rays += counts.shadow as u64;
+            }
+            start = end;
         }
+    }
+}
+
+/// Fewer eye rays than this per pixel are traced one at a time: a packet's set-up costs
+/// more than it shares among so few.
+const MIN_PACKET: usize = 4;
+
+/// Adds one sample's colour (and, when `ESTIMATE`, its luminance and ray count) to `acc`.
+#[inline(always)]
+fn add_sample<const ESTIMATE: bool>(
+    acc: &mut PixelSums,
+    sample: u32,
+    color: DVec3,
+    counts: RayCounts,
+) {
+    let color = sanitize(color);
+    acc.rgb += color;
+    if ESTIMATE {
+        let lum = luminance(color.x, color.y, color.z);
+        acc.lum += lum;
+        if in_second_half(sample) {
+            acc.lum_odd += lum;
+        }
+        acc.rays += (counts.radiance + counts.shadow) as f64;
     }
 }
 

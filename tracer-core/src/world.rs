@@ -4,7 +4,7 @@
 
 use glam::{DMat3, DVec2, DVec3};
 
-use crate::accel::{with_capacity_huge, Bvh, PADDING};
+use crate::accel::{with_capacity_huge, Bvh, PacketBounds, PACKET, PADDING};
 
 mod top;
 use crate::geometry::{
@@ -479,15 +479,10 @@ impl World {
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
         self.traverse_top::<false>(ray, &mut t_max, |slot, t_max| {
-            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, *t_max, &mut world_tri_ray)
+            let bound = tie_bound(best.is_some(), *t_max);
+            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, bound, &mut world_tri_ray)
             {
-                *t_max = h.t;
-                best = Some(Hit {
-                    t: h.t,
-                    object: slot as u32,
-                    prim: h.prim,
-                    bary: h.bary,
-                });
+                keep_nearer(&mut best, t_max, slot, h);
             }
             false
         });
@@ -508,25 +503,123 @@ impl World {
 
     /// [`World::intersect`] for a ray that can hit nothing outside the top-level `slots`
     /// (a pixel's eye ray, with its pixel's [`World::frustum_slots`]): those slots are tested
-    /// without a traversal. The nearest hit is the same; only exact ties in t between two
-    /// objects may resolve to the other one.
+    /// without a traversal. The nearest hit is the same (ties in t go to the lower slot,
+    /// then the lower triangle slot, whatever the order of the tests).
     pub fn intersect_among(&self, ray: &Ray, t_min: f64, t_max: f64, slots: &[u32]) -> Option<Hit> {
         let mut world_tri_ray = None;
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
         for &slot in slots {
             let slot = slot as usize;
-            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, t_max, &mut world_tri_ray) {
-                t_max = h.t;
-                best = Some(Hit {
-                    t: h.t,
-                    object: slot as u32,
-                    prim: h.prim,
-                    bary: h.bary,
-                });
+            let bound = tie_bound(best.is_some(), t_max);
+            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, bound, &mut world_tri_ray) {
+                keep_nearer(&mut best, &mut t_max, slot, h);
             }
         }
         best
+    }
+
+    /// [`World::intersect`] for up to [`PACKET`] rays at once, into `hits` (one per ray),
+    /// each the same hit `intersect` finds for that ray. Coherent rays (a block of eye rays)
+    /// share the work: a mesh's BVH is walked once for the packet (see
+    /// [`Bvh::traverse_packet`]), and a packet that misses an object's box skips it. `slots`,
+    /// when given, holds every top-level slot any of the rays can hit (as for
+    /// [`World::intersect_among`]).
+    pub fn intersect_packet(
+        &self,
+        rays: &[Ray],
+        t_min: f64,
+        t_max: f64,
+        slots: Option<&[u32]>,
+        hits: &mut [Option<Hit>],
+    ) {
+        let n = rays.len();
+        assert!(n <= PACKET && hits.len() == n, "a packet of {n} rays");
+        hits.fill(None);
+        let Some(packet) = PacketBounds::new(rays) else {
+            // Rays out of the f32 tests' range: one by one, as the single-ray walks take them.
+            for (ray, hit) in rays.iter().zip(hits) {
+                *hit = match slots {
+                    Some(slots) => self.intersect_among(ray, t_min, t_max, slots),
+                    None => self.intersect(ray, t_min, t_max),
+                };
+            }
+            return;
+        };
+        let mut limits = [t_max; PACKET];
+        let limits = &mut limits[..n];
+        let mut world_tri_rays = [None; PACKET];
+        let mut visit = |slot: usize, limits: &mut [f64]| {
+            self.object_packet(slot, rays, t_min, limits, hits, &mut world_tri_rays)
+        };
+        match slots {
+            Some(slots) => {
+                for &slot in slots {
+                    visit(slot as usize, limits);
+                }
+            }
+            None if self.objects.len() == 1 => {
+                if packet.may_hit(&self.top.bounds(), t_max) {
+                    visit(0, limits);
+                }
+            }
+            None => {
+                self.top.traverse_packet_leaves(&packet, limits, |slots, limits| {
+                    for slot in slots {
+                        visit(slot, limits);
+                    }
+                });
+            }
+        }
+    }
+
+    /// The object in top-level slot `slot` against every ray of a packet, each ray's hit
+    /// kept in `hits` where it is nearer (ties as in [`World::intersect`]); `limits` are the
+    /// rays' current nearest distances.
+    fn object_packet(
+        &self,
+        slot: usize,
+        rays: &[Ray],
+        t_min: f64,
+        limits: &mut [f64],
+        hits: &mut [Option<Hit>],
+        world_tri_rays: &mut [Option<TriangleRay>; PACKET],
+    ) {
+        let n = rays.len();
+        let Object::Model(i) = self.objects[slot] else {
+            for i in 0..n {
+                let bound = tie_bound(hits[i].is_some(), limits[i]);
+                let h = self.hit_object::<false>(slot, &rays[i], t_min, bound, &mut world_tri_rays[i]);
+                if let Some(h) = h {
+                    keep_nearer(&mut hits[i], &mut limits[i], slot, h);
+                }
+            }
+            return;
+        };
+        let model = &self.models[i as usize];
+        let mesh = &self.meshes[model.mesh as usize];
+        let mut local = [Ray::new(DVec3::ONE, DVec3::ONE); PACKET];
+        let mut bounds = [0.0; PACKET];
+        for i in 0..n {
+            local[i] = model.transform.ray_to_local(&rays[i]);
+            bounds[i] = tie_bound(hits[i].is_some(), limits[i]);
+        }
+        // Each ray's triangle-test set-up, made when it first reaches a leaf.
+        let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
+        let mut found: [Option<ObjectHit>; PACKET] = [None; PACKET];
+        mesh.bvh
+            .traverse_packet(&local[..n], &mut bounds[..n], |i, tris, t_max| {
+                let (tri_ray, ray32) = tri_rays[i].get_or_insert_with(|| {
+                    let tri_ray = TriangleRay::new(&local[i]);
+                    (tri_ray, TriangleRayF32::new(&tri_ray))
+                });
+                mesh_leaf::<false>(mesh, tri_ray, ray32, tris, t_min, t_max, &mut found[i]);
+            });
+        for i in 0..n {
+            if let Some(h) = found[i] {
+                keep_nearer(&mut hits[i], &mut limits[i], slot, h);
+            }
+        }
     }
 
     /// Whether anything lies along the ray with t in (0, t_max).
@@ -623,19 +716,7 @@ impl World {
                 let mut found = None;
                 let mut limit = t_max;
                 let leaf = |tris: std::ops::Range<usize>, t_max: &mut f64| {
-                    any_candidate(&mesh.blocks, &mesh.corners, &ray32, tris, |tri| {
-                        let [a, b, c] = mesh.corners[tri];
-                        let Some(h) = intersect_triangle(&tri_ray, a, b, c, t_min, *t_max) else {
-                            return false;
-                        };
-                        *t_max = h.t;
-                        found = Some(ObjectHit {
-                            t: h.t,
-                            prim: tri as u32,
-                            bary: h.bary,
-                        });
-                        ANY
-                    })
+                    mesh_leaf::<ANY>(mesh, &tri_ray, &ray32, tris, t_min, t_max, &mut found)
                 };
                 if ANY {
                     mesh.bvh.traverse_any(&local, &mut limit, leaf);
@@ -754,6 +835,71 @@ impl World {
             }
         }
     }
+}
+
+/// The bound to test an object or triangle against when the nearest hit so far (if
+/// `found`) lies at `t_max`: just above it, so that a hit at the same distance is seen and
+/// the tie can go to the lower slot whatever order the tests come in (closest-hit walks of
+/// a packet and of a single ray meet the same triangles in different orders).
+#[inline(always)]
+fn tie_bound(found: bool, t_max: f64) -> f64 {
+    if found {
+        t_max.next_up()
+    } else {
+        t_max
+    }
+}
+
+/// Keeps `h`, the hit of the object in `slot` (found below [`tie_bound`]), as `best` if it
+/// is nearer, or as near and in a lower slot.
+#[inline(always)]
+fn keep_nearer(best: &mut Option<Hit>, t_max: &mut f64, slot: usize, h: ObjectHit) {
+    if best.is_some_and(|b| h.t == b.t && slot as u32 > b.object) {
+        return;
+    }
+    *t_max = h.t;
+    *best = Some(Hit {
+        t: h.t,
+        object: slot as u32,
+        prim: h.prim,
+        bary: h.bary,
+    });
+}
+
+/// The triangles of a mesh leaf `tris` against a ray, for t in (t_min, `*t_max`): a nearer
+/// hit (or, at the same distance, one in a lower slot) replaces `found` and shrinks
+/// `*t_max`. With `ANY`, returns true at the first hit.
+#[inline(always)]
+fn mesh_leaf<const ANY: bool>(
+    mesh: &Mesh,
+    tri_ray: &TriangleRay,
+    ray32: &TriangleRayF32,
+    tris: std::ops::Range<usize>,
+    t_min: f64,
+    t_max: &mut f64,
+    found: &mut Option<ObjectHit>,
+) -> bool {
+    any_candidate(&mesh.blocks, &mesh.corners, ray32, tris, |tri| {
+        let [a, b, c] = mesh.corners[tri];
+        let bound = if ANY {
+            *t_max
+        } else {
+            tie_bound(found.is_some(), *t_max)
+        };
+        let Some(h) = intersect_triangle(tri_ray, a, b, c, t_min, bound) else {
+            return false;
+        };
+        if !ANY && found.is_some_and(|f| h.t == f.t && tri as u32 > f.prim) {
+            return false;
+        }
+        *t_max = h.t;
+        *found = Some(ObjectHit {
+            t: h.t,
+            prim: tri as u32,
+            bary: h.bary,
+        });
+        ANY
+    })
 }
 
 /// One object's hit: distance, triangle slot (within a mesh) and barycentrics.
@@ -1038,6 +1184,214 @@ mod tests {
         }
         assert!(blocked > 400 && blocked < 3600, "{blocked} blocked");
         assert!(remembered > 200, "{remembered} blocked after a blocked ray");
+    }
+
+    /// A `n`×`n` grid of squares over [0, 1]² (two triangles each) at height `bump(x, y)`.
+    fn grid_mesh(n: usize, bump: impl Fn(f64, f64) -> f64) -> Mesh {
+        let mut positions = Vec::new();
+        for j in 0..=n {
+            for i in 0..=n {
+                let (x, y) = (i as f64 / n as f64, j as f64 / n as f64);
+                positions.push(DVec3::new(x, y, bump(x, y)));
+            }
+        }
+        let v = |i: usize, j: usize| (j * (n + 1) + i) as u32;
+        let mut triangles = Vec::new();
+        for j in 0..n {
+            for i in 0..n {
+                triangles.push([v(i, j), v(i + 1, j), v(i + 1, j + 1)]);
+                triangles.push([v(i, j), v(i + 1, j + 1), v(i, j + 1)]);
+            }
+        }
+        let normals = vec![DVec3::Z; positions.len()];
+        let tex_coords = vec![DVec2::ZERO; positions.len()];
+        Mesh::new(&positions, normals, tex_coords, &triangles)
+    }
+
+    fn same_hit(a: Option<Hit>, b: Option<Hit>) -> bool {
+        match (a, b) {
+            (None, None) => true,
+            (Some(a), Some(b)) => {
+                a.t.to_bits() == b.t.to_bits()
+                    && a.object == b.object
+                    && a.prim == b.prim
+                    && a.bary.map(f64::to_bits) == b.bary.map(f64::to_bits)
+            }
+            _ => false,
+        }
+    }
+
+    /// Two instances of a bumpy grid (one turned and scaled), a flat one, and spheres, at
+    /// scale `scale` around `offset`.
+    fn packet_world(scale: f64, offset: DVec3) -> World {
+        let bumpy = grid_mesh(40, |x, y| 0.05 * (13.0 * x).sin() * (9.0 * y).cos());
+        let flat = grid_mesh(16, |_, _| 0.0);
+        let at = |p: DVec3, turn: f64, s: f64| Model {
+            transform: Transform::new(
+                offset + p * scale,
+                glam::DQuat::from_rotation_z(turn) * glam::DQuat::from_rotation_x(-0.3),
+                DVec3::splat(s * scale),
+            ),
+            mesh: 0,
+            material: 0,
+        };
+        let models = vec![
+            at(DVec3::new(-1.0, -0.5, -3.0), 0.0, 2.0),
+            at(DVec3::new(0.2, -0.8, -4.0), 0.7, 1.5),
+            Model {
+                mesh: 1,
+                ..at(DVec3::new(-0.5, 0.3, -2.5), 0.2, 1.0)
+            },
+        ];
+        let spheres = (0..3)
+            .map(|i| Sphere {
+                transform: Transform::new(
+                    offset + DVec3::new(i as f64 * 0.6 - 0.6, 0.2, -3.2) * scale,
+                    glam::DQuat::IDENTITY,
+                    DVec3::ONE,
+                ),
+                radius: 0.15 * scale,
+                material: 0,
+            })
+            .collect();
+        World::with_movers(
+            spheres,
+            vec![],
+            vec![bumpy, flat],
+            models,
+            vec![],
+            (0.0, 0.0),
+        )
+    }
+
+    #[test]
+    fn a_packet_finds_exactly_each_rays_own_hit() {
+        use crate::camera::Camera;
+        let mut next = crate::test_rng::uniform(2024);
+        for (scale, offset) in [
+            (1.0, DVec3::ZERO),
+            (1e-3, DVec3::new(0.5, -0.2, 0.1)),
+            (1e4, DVec3::new(3e4, 1e3, -2e4)),
+        ] {
+            let world = packet_world(scale, offset);
+            let all: Vec<u32> = (0..world.objects.len() as u32).collect();
+            let camera = Camera::from_orientation(
+                offset,
+                glam::DQuat::IDENTITY,
+                1.0,
+                0.0,
+                f64::INFINITY,
+                4.0 / 3.0,
+            );
+            let (w, h) = (96.0, 72.0);
+            let (mut hits, mut rays_traced) = (0, 0);
+            for k in 0..160 {
+                // 8×8 pixel blocks (some with jittered samples), single rays, every ray of
+                // a packet from its own origin in its own direction, and odd sizes.
+                let n = [64, 64, 1, 17, 64, 5][k % 6];
+                let (bx, by) = ((k * 8) as f64 % w, ((k * 8) as f64 / w).floor() * 8.0 % h);
+                let rays: Vec<Ray> = (0..n)
+                    .map(|i| {
+                        if k % 6 == 4 {
+                            let o = offset + DVec3::new(next() - 0.5, next() - 0.5, next()) * scale;
+                            let d = DVec3::new(next() - 0.5, next() - 0.5, -next());
+                            return Ray::new(o, d.normalize());
+                        }
+                        let (jx, jy) = if k % 2 == 0 {
+                            (0.5, 0.5)
+                        } else {
+                            (next(), next())
+                        };
+                        let (x, y) = (bx + (i % 8) as f64 + jx, by + (i / 8) as f64 + jy);
+                        camera.ray(x, y, w, h)
+                    })
+                    .collect();
+                let (t_min, t_max) = if k % 5 == 0 {
+                    (0.1 * scale, 3.1 * scale)
+                } else {
+                    (0.0, f64::INFINITY)
+                };
+                let mut found = vec![None; n];
+                let mut among = vec![None; n];
+                world.intersect_packet(&rays, t_min, t_max, None, &mut found);
+                world.intersect_packet(&rays, t_min, t_max, Some(&all), &mut among);
+                for (i, ray) in rays.iter().enumerate() {
+                    let single = world.intersect(ray, t_min, t_max);
+                    assert!(
+                        same_hit(single, found[i]) && same_hit(single, among[i]),
+                        "scale {scale}, packet {k}, ray {i}: {single:?} {:?} {:?}",
+                        found[i],
+                        among[i]
+                    );
+                    assert!(same_hit(single, world.intersect_among(ray, t_min, t_max, &all)));
+                    hits += single.is_some() as usize;
+                    rays_traced += 1;
+                }
+            }
+            assert!(hits > rays_traced / 8 && hits < rays_traced, "{hits} of {rays_traced}");
+        }
+        // An empty packet, and one no ray of which hits anything.
+        let world = packet_world(1.0, DVec3::ZERO);
+        world.intersect_packet(&[], 0.0, f64::INFINITY, None, &mut []);
+        let away: Vec<Ray> = (0..64)
+            .map(|i| Ray::new(DVec3::ZERO, DVec3::new(i as f64 * 0.01, 0.1, 1.0).normalize()))
+            .collect();
+        let mut found = vec![None; 64];
+        world.intersect_packet(&away, 0.0, f64::INFINITY, None, &mut found);
+        assert!(found.iter().all(Option::is_none));
+    }
+
+    #[test]
+    fn ties_go_to_the_lower_slot_whatever_the_order() {
+        // Rays through the vertices and edges of a flat grid meet several triangles at the
+        // same t; the nearest hit must be the lowest slot among them, by brute force.
+        let world = World::with_movers(
+            vec![],
+            vec![],
+            vec![grid_mesh(8, |_, _| 0.0)],
+            vec![Model {
+                transform: Transform::new(DVec3::ZERO, glam::DQuat::IDENTITY, DVec3::ONE),
+                mesh: 0,
+                material: 0,
+            }],
+            vec![],
+            (0.0, 0.0),
+        );
+        let mesh = &world.meshes[0];
+        let mut ties = 0;
+        let mut rays = Vec::new();
+        for j in 0..=16 {
+            for i in 0..=16 {
+                let aim = DVec3::new(i as f64 / 16.0, j as f64 / 16.0, 0.0);
+                let origin = DVec3::new(0.5, 0.25, 2.0);
+                rays.push(Ray::new(origin, (aim - origin).normalize()));
+            }
+        }
+        for ray in &rays {
+            let tri_ray = TriangleRay::new(ray);
+            let brute = (0..mesh.corners.len())
+                .filter(|&s| mesh.indices[s] != PADDING_TRIANGLE)
+                .filter_map(|s| {
+                    let [a, b, c] = mesh.corners[s];
+                    intersect_triangle(&tri_ray, a, b, c, 0.0, f64::INFINITY).map(|h| (h.t, s))
+                })
+                .collect::<Vec<_>>();
+            let best = brute
+                .iter()
+                .copied()
+                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            ties += (brute.iter().filter(|h| Some(h.0) == best.map(|b| b.0)).count() > 1) as usize;
+            let hit = world.intersect(ray, 0.0, f64::INFINITY);
+            assert_eq!(hit.map(|h| (h.t, h.prim as usize)), best);
+        }
+        assert!(ties > 20, "{ties} rays with tied hits");
+        for packet in rays.chunks(PACKET) {
+            let mut hits = vec![None; packet.len()];
+            world.intersect_packet(packet, 0.0, f64::INFINITY, None, &mut hits);
+            for (ray, hit) in packet.iter().zip(hits) {
+                assert!(same_hit(hit, world.intersect(ray, 0.0, f64::INFINITY)));
+            }
+        }
     }
 
     #[test]

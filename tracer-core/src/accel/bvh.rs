@@ -2,6 +2,9 @@ use std::mem::MaybeUninit;
 
 use crate::geometry::{Aabb, Ray};
 
+mod packet;
+pub use packet::{PacketBounds, PACKET};
+
 /// Children per node. Eight halve the depth of a four-wide tree, so a ray makes fewer
 /// dependent node loads (the latency that bounds incoherent rays); each visit tests its
 /// boxes in two SSE halves.

@@ -67,6 +67,19 @@ impl Stage<'_> {
     }
 }
 
+/// How [`Tracer::sample`] finds the eye ray's hit.
+#[derive(Clone, Copy, Debug)]
+pub enum Eye<'s> {
+    /// By the top-level walk ([`World::intersect`]), as every later ray does.
+    Walk,
+    /// Among these top-level slots, every one the eye ray can hit (its pixel's
+    /// [`World::frustum_slots`]), without a traversal ([`World::intersect_among`]).
+    Among(&'s [u32]),
+    /// Already found, the same hit either query gives (traced in a packet with other eye
+    /// rays, [`World::intersect_packet`]).
+    Found(Option<Hit>),
+}
+
 /// Rays one pixel sample traced.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct RayCounts {
@@ -110,8 +123,7 @@ impl<'a> Tracer<'a> {
     /// accepted for t in [near, far], with the rays it traced. `rng` is the sample's main
     /// stream; `gloss` its glossy-lobe stream, needed only where a material is glossy.
     ///
-    /// `slots`, when given, holds every top-level slot the eye ray can hit (its pixel's
-    /// [`World::frustum_slots`]): the eye ray then tests those without a traversal.
+    /// `eye` says how the eye ray's hit is found ([`Eye`]).
     pub fn sample(
         &mut self,
         ray: &Ray,
@@ -119,20 +131,20 @@ impl<'a> Tracer<'a> {
         far: f64,
         rng: &mut Rng,
         gloss: Option<Rng>,
-        slots: Option<&[u32]>,
+        eye: Eye,
     ) -> (DVec3, RayCounts) {
         if let Some(gloss) = gloss {
             self.gloss_rng = gloss;
         }
         self.counts = RayCounts::default();
         let outer = std::rc::Rc::clone(&self.outer);
-        let color = self.radiance(ray, near, far, 0, &outer, rng, slots);
+        let color = self.radiance(ray, near, far, 0, &outer, rng, eye);
         (color, self.counts)
     }
 
     /// Colour seen along `ray` (unit direction) at recursion `level` (the eye ray is level 0;
-    /// a ray at level max_depth contributes black). `slots`: the eye ray's candidates (see
-    /// [`Tracer::sample`]), None past level 0.
+    /// a ray at level max_depth contributes black). `eye`: how the eye ray's hit is found
+    /// (see [`Tracer::sample`]), [`Eye::Walk`] past level 0.
     #[allow(clippy::too_many_arguments)]
     fn radiance(
         &mut self,
@@ -142,10 +154,10 @@ impl<'a> Tracer<'a> {
         level: u32,
         media: &MediumStack,
         rng: &mut Rng,
-        slots: Option<&[u32]>,
+        eye: Eye,
     ) -> DVec3 {
         let absorption = media.absorption();
-        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng, slots);
+        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng, eye);
         if absorption == DVec3::ZERO {
             return color;
         }
@@ -165,16 +177,17 @@ impl<'a> Tracer<'a> {
         level: u32,
         media: &MediumStack,
         rng: &mut Rng,
-        slots: Option<&[u32]>,
+        eye: Eye,
     ) -> (DVec3, f64) {
         if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
             return (DVec3::ZERO, 0.0);
         }
         self.counts.radiance += 1;
         let world = self.stage.world;
-        let hit = match slots {
-            Some(slots) => world.intersect_among(ray, t_min, t_max, slots),
-            None => world.intersect(ray, t_min, t_max),
+        let hit = match eye {
+            Eye::Walk => world.intersect(ray, t_min, t_max),
+            Eye::Among(slots) => world.intersect_among(ray, t_min, t_max, slots),
+            Eye::Found(hit) => hit,
         };
         let Some(hit) = hit else {
             return (self.stage.background(ray.dir), f64::INFINITY);
@@ -217,7 +230,7 @@ impl<'a> Tracer<'a> {
                 let reflected =
                     spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
                 color += tint
-                    * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, None);
+                    * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, Eye::Walk);
             }
             return color;
         }
@@ -236,7 +249,7 @@ impl<'a> Tracer<'a> {
             let reflected = spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
             color += reflectance
                 * tint
-                * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, None);
+                * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, Eye::Walk);
         }
         if reflectance < 1.0 {
             if let Some(dir) = crossing.refracted(d) {
@@ -250,7 +263,7 @@ impl<'a> Tracer<'a> {
                         level + 1,
                         &crossing.beyond,
                         rng,
-                        None,
+                        Eye::Walk,
                     );
             }
         }

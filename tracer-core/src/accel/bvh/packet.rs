@@ -1,0 +1,623 @@
+//! Packet traversal: up to [`PACKET`] coherent rays (a block of eye rays) walk the tree
+//! together. Each interior node is tested once for the whole packet with interval bounds of
+//! the rays (every ray's origin and inverse direction lie in a box), so the upper levels cost
+//! one node test per packet instead of one per ray; only at a node with leaf children does
+//! each ray take its own box test, the single-ray traversal's, before its leaves.
+//!
+//! The packet test is conservative: it culls a box only when no ray of the packet can enter
+//! it before the packet's farthest `t_max`, so every ray meets at least the leaves the
+//! single-ray traversal would hand it (the owner's nearest-hit rule must not depend on the
+//! order they come in).
+
+use std::mem::MaybeUninit;
+use std::ops::Range;
+
+use super::{
+    leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Node, RayF32, F32_SAFE, NO_CHILD,
+    SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH, WIDTH,
+};
+use crate::geometry::{Aabb, Ray};
+
+/// The most rays [`Bvh::traverse_packet`] takes at once (one bit each in a `u64`).
+pub const PACKET: usize = 64;
+
+/// Interval bounds of a packet of rays, per axis: an f32 range holding every ray's origin
+/// (rounded outward) and one holding every ray's inverse direction (rounded outward).
+#[derive(Clone, Copy, Debug)]
+pub struct PacketBounds {
+    /// Row of `Node::bounds` holding the near / far plane on each axis (by the sign the
+    /// rays' directions share there).
+    near: [usize; 3],
+    far: [usize; 3],
+    o_lo: [f32; 3],
+    o_hi: [f32; 3],
+    inv_lo: [f32; 3],
+    inv_hi: [f32; 3],
+    /// Axes along which the directions differ in sign: they bound nothing (a lower bound of
+    /// 0 on entry, none on exit), which keeps the test conservative.
+    mixed: [bool; 3],
+}
+
+impl PacketBounds {
+    /// The bounds of `rays`, or None when there are none or one is outside the f32 test's
+    /// range (those take the single-ray traversal, which falls back to f64).
+    pub fn new(rays: &[Ray]) -> Option<PacketBounds> {
+        if rays.is_empty() {
+            return None;
+        }
+        let mut p = PacketBounds {
+            near: [0; 3],
+            far: [0; 3],
+            o_lo: [0.0; 3],
+            o_hi: [0.0; 3],
+            inv_lo: [0.0; 3],
+            inv_hi: [0.0; 3],
+            mixed: [false; 3],
+        };
+        for a in 0..3 {
+            let (mut o_lo, mut o_hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            let (mut i_lo, mut i_hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            let mut safe = true;
+            for r in rays {
+                let (o, inv) = (r.origin[a], r.inv_dir[a]);
+                // The same range as `RayF32::new`'s, so that every ray of a packet also has
+                // its f32 single-ray set-up.
+                safe &= (o.abs() < F32_SAFE) & (inv.abs() < F32_SAFE) & (inv.abs() > 1.0 / F32_SAFE);
+                o_lo = o_lo.min(o);
+                o_hi = o_hi.max(o);
+                i_lo = i_lo.min(inv);
+                i_hi = i_hi.max(inv);
+            }
+            if !safe {
+                return None;
+            }
+            p.o_lo[a] = round_down(o_lo);
+            p.o_hi[a] = round_up(o_hi);
+            p.inv_lo[a] = round_down(i_lo);
+            p.inv_hi[a] = round_up(i_hi);
+            if i_lo > 0.0 {
+                (p.near[a], p.far[a]) = (2 * a, 2 * a + 1);
+            } else if i_hi < 0.0 {
+                (p.near[a], p.far[a]) = (2 * a + 1, 2 * a);
+            } else {
+                p.mixed[a] = true;
+            }
+        }
+        Some(p)
+    }
+
+    /// Hit mask and entry distances (lower bounds over the packet) of a node's boxes: a
+    /// child is out of the mask only if no ray of the packet can enter it before `t_max`.
+    /// Per lane and axis, the slab distances of the box's near and far planes are bounded by
+    /// the four products of the interval ends (exact f32 ends, so one rounding per operation,
+    /// far inside the single-ray test's 16-unit margin, which is applied the same way).
+    #[inline(always)]
+    fn hit(&self, node: &Node, t_max: f32) -> (u32, [f32; WIDTH]) {
+        let b = &node.bounds;
+        let mut mask = 0;
+        let mut dist = [0f32; WIDTH];
+        for c in 0..WIDTH {
+            let mut near = 0f32;
+            let mut far = t_max;
+            for a in 0..3 {
+                if self.mixed[a] {
+                    continue;
+                }
+                let (i0, i1) = (self.inv_lo[a], self.inv_hi[a]);
+                let (n0, n1) = (b[self.near[a]][c] - self.o_hi[a], b[self.near[a]][c] - self.o_lo[a]);
+                let (f0, f1) = (b[self.far[a]][c] - self.o_hi[a], b[self.far[a]][c] - self.o_lo[a]);
+                let tn = (n0 * i0).min(n0 * i1).min((n1 * i0).min(n1 * i1));
+                let tf = (f0 * i0).max(f0 * i1).max((f1 * i0).max(f1 * i1));
+                near = near.max(tn);
+                far = far.min(tf);
+            }
+            let near = near * SLAB_DOWN;
+            let far = far * SLAB_UP + SLAB_ABS;
+            if near <= far {
+                mask |= 1 << c;
+            }
+            dist[c] = near;
+        }
+        (mask & used_mask(node), dist)
+    }
+
+    /// [`PacketBounds::hit`] eight boxes at a time, the same operations lane by lane (no
+    /// NaN reaches a used lane: mixed axes, whose inverse directions straddle zero, are
+    /// skipped, and unused lanes are masked off), so the same bits.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    #[allow(unused_unsafe)]
+    unsafe fn hit_avx2(&self, node: &Node, t_max: f32) -> (u32, [f32; WIDTH]) {
+        use std::arch::x86_64::*;
+        let b = &node.bounds;
+        let mut mask = 0;
+        let mut dist = [0f32; WIDTH];
+        // SAFETY: the caller guarantees AVX2; loads read rows of `WIDTH` (a multiple of
+        // eight) f32s at offsets `half`, `half + 8`, …; the store writes eight of `dist`'s.
+        unsafe {
+            for half in (0..WIDTH).step_by(8) {
+                let mut near = _mm256_setzero_ps();
+                let mut far = _mm256_set1_ps(t_max);
+                for a in 0..3 {
+                    if self.mixed[a] {
+                        continue;
+                    }
+                    let (i0, i1) = (
+                        _mm256_set1_ps(self.inv_lo[a]),
+                        _mm256_set1_ps(self.inv_hi[a]),
+                    );
+                    let (o0, o1) = (_mm256_set1_ps(self.o_hi[a]), _mm256_set1_ps(self.o_lo[a]));
+                    let bn = _mm256_loadu_ps(b[self.near[a]].as_ptr().add(half));
+                    let bf = _mm256_loadu_ps(b[self.far[a]].as_ptr().add(half));
+                    let (n0, n1) = (_mm256_sub_ps(bn, o0), _mm256_sub_ps(bn, o1));
+                    let (f0, f1) = (_mm256_sub_ps(bf, o0), _mm256_sub_ps(bf, o1));
+                    let tn = _mm256_min_ps(
+                        _mm256_min_ps(_mm256_mul_ps(n0, i0), _mm256_mul_ps(n0, i1)),
+                        _mm256_min_ps(_mm256_mul_ps(n1, i0), _mm256_mul_ps(n1, i1)),
+                    );
+                    let tf = _mm256_max_ps(
+                        _mm256_max_ps(_mm256_mul_ps(f0, i0), _mm256_mul_ps(f0, i1)),
+                        _mm256_max_ps(_mm256_mul_ps(f1, i0), _mm256_mul_ps(f1, i1)),
+                    );
+                    near = _mm256_max_ps(near, tn);
+                    far = _mm256_min_ps(far, tf);
+                }
+                let near = _mm256_mul_ps(near, _mm256_set1_ps(SLAB_DOWN));
+                let far = _mm256_add_ps(
+                    _mm256_mul_ps(far, _mm256_set1_ps(SLAB_UP)),
+                    _mm256_set1_ps(SLAB_ABS),
+                );
+                mask |= (_mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32) << half;
+                _mm256_storeu_ps(dist.as_mut_ptr().add(half), near);
+            }
+        }
+        (mask & used_mask(node), dist)
+    }
+
+    /// Whether some ray of the packet may enter `aabb` before `t_max` (conservative, like
+    /// the node test): lets a caller skip a whole object for a packet that misses its box.
+    pub fn may_hit(&self, aabb: &Aabb, t_max: f64) -> bool {
+        let mut node = Node {
+            bounds: [[f32::INFINITY; WIDTH]; 6],
+            index: [NO_CHILD; WIDTH],
+            count: [0; WIDTH],
+        };
+        for a in 0..3 {
+            node.bounds[2 * a][0] = round_down(aabb.min[a]);
+            node.bounds[2 * a + 1][0] = round_up(aabb.max[a]);
+        }
+        node.index[0] = 0;
+        self.hit(&node, t_max_f32(t_max)).0 & 1 != 0
+    }
+}
+
+/// The slots of `node` that hold a child.
+#[inline(always)]
+fn used_mask(node: &Node) -> u32 {
+    let mut mask = 0;
+    for c in 0..WIDTH {
+        mask |= ((node.index[c] != NO_CHILD) as u32) << c;
+    }
+    mask
+}
+
+impl Bvh {
+    /// Hands `leaf(i, primitives, t_max)` every leaf ray `rays[i]` may reach before its
+    /// `t_max[i]` (which `leaf` shrinks as it finds closer hits): at least the leaves
+    /// [`Bvh::traverse`] hands that ray, but in another order and possibly more, so the
+    /// owner's rule for the nearest hit must not depend on the order (ties at equal t broken
+    /// by primitive slot, say). At most [`PACKET`] rays; rays the f32 tests cannot take
+    /// make the whole packet go ray by ray.
+    #[inline(always)]
+    pub fn traverse_packet(
+        &self,
+        rays: &[Ray],
+        t_max: &mut [f64],
+        mut leaf: impl FnMut(usize, Range<usize>, &mut f64),
+    ) {
+        assert!(rays.len() <= PACKET && t_max.len() == rays.len());
+        if self.nodes.is_empty() {
+            return;
+        }
+        let Some(packet) = PacketBounds::new(rays) else {
+            for (i, ray) in rays.iter().enumerate() {
+                self.traverse(ray, &mut t_max[i], |range, t| {
+                    leaf(i, range, t);
+                    false
+                });
+            }
+            return;
+        };
+        #[cfg(target_arch = "x86_64")]
+        if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2.
+            unsafe { self.traverse_packet_avx2(&packet, rays, t_max, leaf) };
+            return;
+        }
+        self.traverse_packet_with(
+            rays,
+            t_max,
+            leaf,
+            |node, far| packet.hit(node, far),
+            |r, node, t_max| r.hit(node, t_max),
+        );
+    }
+
+    /// [`Bvh::traverse_packet_with`] compiled for AVX2 with the owner's leaf test, both box
+    /// tests eight lanes at a time (the same bits as the SSE ones).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn traverse_packet_avx2(
+        &self,
+        packet: &PacketBounds,
+        rays: &[Ray],
+        t_max: &mut [f64],
+        leaf: impl FnMut(usize, Range<usize>, &mut f64),
+    ) {
+        // SAFETY: this function only runs where AVX2 is available.
+        self.traverse_packet_with(
+            rays,
+            t_max,
+            leaf,
+            |node, far| unsafe { packet.hit_avx2(node, far) },
+            |r, node, t_max| unsafe { r.hit_avx2(node, t_max) },
+        );
+    }
+
+    /// Hands `leaf(slots, t_max)` every leaf some ray of a packet with bounds `packet` may
+    /// reach before its `t_max[i]` (which `leaf` shrinks), nearest first by the packet's
+    /// lower bound of entry; the packet test alone decides (for a level of few, large
+    /// leaves, such as the top level over objects, where the owner tests each ray itself).
+    pub fn traverse_packet_leaves(
+        &self,
+        packet: &PacketBounds,
+        t_max: &mut [f64],
+        mut leaf: impl FnMut(Range<usize>, &mut [f64]),
+    ) {
+        if self.nodes.is_empty() {
+            return;
+        }
+        let all = u64::MAX >> (64 - t_max.len().clamp(1, 64));
+        self.packet_walk(
+            t_max,
+            all,
+            |node, far| packet.hit(node, far),
+            |node, leaves, _, _, t_max| {
+                let mut m = leaves;
+                while m != 0 {
+                    let c = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    let first = node.index[c] as usize;
+                    leaf(first..first + node.count[c] as usize, t_max);
+                }
+                None
+            },
+        );
+    }
+
+    /// [`Bvh::traverse_packet`]'s walk. Each ray takes its own box test (the single-ray
+    /// traversal's) only where the packet's paths part: at a node with leaf children (to
+    /// pick its leaves) and where two or more interior children are entered (to split the
+    /// packet's rays among them); elsewhere the packet test alone passes the rays down.
+    #[inline(always)]
+    fn traverse_packet_with(
+        &self,
+        rays: &[Ray],
+        t_max: &mut [f64],
+        mut leaf: impl FnMut(usize, Range<usize>, &mut f64),
+        packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
+        ray_hit: impl Fn(&RayF32, &Node, f64) -> (u32, [f32; WIDTH]),
+    ) {
+        // Each ray's f32 set-up, made when the packet's paths first part (a packet that
+        // misses everything never pays for it).
+        let mut single = [const { MaybeUninit::<RayF32>::uninit() }; PACKET];
+        let mut ready = false;
+        let all = u64::MAX >> (64 - rays.len());
+        self.packet_walk(
+            t_max,
+            all,
+            packet_hit,
+            |node, leaves, inner, active, t_max| {
+                if !ready {
+                    for (s, ray) in single.iter_mut().zip(rays) {
+                        s.write(RayF32::new(ray).expect("PacketBounds::new checked the range"));
+                    }
+                    ready = true;
+                }
+                let mut split = [0u64; WIDTH];
+                let mut a = active;
+                while a != 0 {
+                    let i = a.trailing_zeros() as usize;
+                    a &= a - 1;
+                    // SAFETY: the first `rays.len()` entries were written above.
+                    let r = unsafe { single[i].assume_init_ref() };
+                    let (m, d) = ray_hit(r, node, t_max[i]);
+                    let mut l = m & leaves;
+                    while l != 0 {
+                        let c = l.trailing_zeros() as usize;
+                        l &= l - 1;
+                        if d[c] as f64 <= t_max[i] {
+                            let first = node.index[c] as usize;
+                            leaf(i, first..first + node.count[c] as usize, &mut t_max[i]);
+                        }
+                    }
+                    let mut n = m & inner;
+                    while n != 0 {
+                        let c = n.trailing_zeros() as usize;
+                        n &= n - 1;
+                        split[c] |= 1 << i;
+                    }
+                }
+                Some(split)
+            },
+        );
+    }
+
+    /// The packet walk over interior nodes, nearest child (by the packet's lower bound of
+    /// entry) first, each carrying the mask of the packet's rays that may enter it.
+    /// `per_ray(node, leaves, inner, rays, t_max)` is called where the packet enters leaf
+    /// children (`leaves`) or two or more interior ones (`inner`) and `rays` holds more than
+    /// one ray; it handles the leaves and may return, per child, the rays that enter it.
+    /// The packet's reach is the largest `t_max` after it.
+    #[inline(always)]
+    fn packet_walk(
+        &self,
+        t_max: &mut [f64],
+        all: u64,
+        packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
+        mut per_ray: impl FnMut(&Node, u32, u32, u64, &mut [f64]) -> Option<[u64; WIDTH]>,
+    ) {
+        let farthest = |t_max: &[f64]| t_max.iter().fold(f64::NEG_INFINITY, |a, &t| a.max(t));
+        let mut far = farthest(t_max);
+        let mut stack = [const { MaybeUninit::<(u32, f32, u64)>::uninit() }; STACK_DEPTH];
+        let mut top = 0;
+        let mut index = 0usize;
+        let mut active = all;
+        loop {
+            let node = &self.nodes[index];
+            let (mask, dist) = packet_hit(node, t_max_f32(far));
+            let leaves = mask & leaf_mask(node);
+            let mut inner = mask & !leaves;
+            let parts = leaves != 0 || (inner & inner.wrapping_sub(1) != 0 && active & (active - 1) != 0);
+            let split = if parts {
+                let split = per_ray(node, leaves, inner, active, t_max);
+                far = farthest(t_max);
+                split
+            } else {
+                None
+            };
+            if let Some(split) = split {
+                // Children no ray enters by its own test are skipped.
+                for (c, rays) in split.iter().enumerate() {
+                    if *rays == 0 {
+                        inner &= !(1 << c);
+                    }
+                }
+            }
+            let rays_of = |c: usize| split.map_or(active, |s| s[c]);
+            if inner != 0 {
+                let c = inner.trailing_zeros() as usize;
+                inner &= inner - 1;
+                let mut near = (node.index[c], dist[c], rays_of(c));
+                prefetch(&self.nodes, near.0);
+                if inner != 0 {
+                    // Two or more interior children: push all but the nearest, farthest first.
+                    let mut rest = [(0u32, 0f32, 0u64); WIDTH - 1];
+                    let mut n = 0;
+                    while inner != 0 {
+                        let c = inner.trailing_zeros() as usize;
+                        inner &= inner - 1;
+                        let mut child = (node.index[c], dist[c], rays_of(c));
+                        prefetch(&self.nodes, child.0);
+                        if near.1 > child.1 {
+                            std::mem::swap(&mut child, &mut near);
+                        }
+                        let mut i = n;
+                        while i > 0 && child.1 > rest[i - 1].1 {
+                            rest[i] = rest[i - 1];
+                            i -= 1;
+                        }
+                        rest[i] = child;
+                        n += 1;
+                    }
+                    for &p in &rest[..n] {
+                        stack[top].write(p);
+                        top += 1;
+                    }
+                }
+                if near.1 as f64 <= far {
+                    index = near.0 as usize;
+                    active = near.2;
+                    continue;
+                }
+            }
+            // Skip subtrees that hits found since they were pushed have put out of reach.
+            loop {
+                if top == 0 {
+                    return;
+                }
+                top -= 1;
+                // SAFETY: slot `top` was written by the push that raised `top` above it.
+                let (n, entry, rays) = unsafe { stack[top].assume_init() };
+                if entry as f64 <= far {
+                    index = n as usize;
+                    active = rays;
+                    break;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::DVec3;
+
+    use super::*;
+
+    /// Random small boxes around `scale`, offset by `offset`.
+    fn boxes(n: usize, scale: f64, offset: f64, seed: u64) -> Vec<Aabb> {
+        let mut next = crate::test_rng::uniform(seed);
+        (0..n)
+            .map(|_| {
+                let c = DVec3::new(next(), next(), next()) * 10.0 * scale + offset;
+                let e = DVec3::new(next(), next(), next()) * 0.3 * scale;
+                Aabb {
+                    min: c - e,
+                    max: c + e,
+                }
+            })
+            .collect()
+    }
+
+    /// The leaves (by first slot) each ray of `rays` is handed, single-ray and packet.
+    fn leaves_met(bvh: &Bvh, rays: &[Ray], t_max: f64) -> (Vec<Vec<usize>>, Vec<Vec<usize>>) {
+        let single = rays
+            .iter()
+            .map(|r| {
+                let mut met = Vec::new();
+                bvh.traverse(r, &mut t_max.clone(), |range, _| {
+                    met.push(range.start);
+                    false
+                });
+                met.sort();
+                met
+            })
+            .collect();
+        let mut packet = vec![Vec::new(); rays.len()];
+        let mut limits = vec![t_max; rays.len()];
+        bvh.traverse_packet(rays, &mut limits, |i, range, _| packet[i].push(range.start));
+        for p in &mut packet {
+            p.sort();
+        }
+        (single, packet)
+    }
+
+    #[test]
+    fn a_packet_meets_every_leaf_each_of_its_rays_meets_alone() {
+        let mut next = crate::test_rng::uniform(777);
+        for (scale, offset) in [(1e-4, 0.0), (1.0, -2.0), (1e4, 1e5), (0.01, 1e3)] {
+            let prims = boxes(3000, scale, offset, 31);
+            let bvh = Bvh::build(&prims);
+            let centre = DVec3::splat(5.0 * scale + offset);
+            for k in 0..40 {
+                // A bundle from one eye point (coherent, like a pixel block), or from scattered
+                // origins in random directions (incoherent), of 1 to 64 rays.
+                let n = 1 + (k * 13) % PACKET;
+                let eye = centre + DVec3::new(next() - 0.5, next() - 0.5, 2.0) * 20.0 * scale;
+                let aim = centre + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 8.0 * scale;
+                let rays: Vec<Ray> = (0..n)
+                    .map(|_| {
+                        if k % 4 == 3 {
+                            let o = centre + DVec3::new(next(), next(), next()) * 10.0 * scale;
+                            let d = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+                            Ray::new(o, d.normalize())
+                        } else {
+                            let jitter = DVec3::new(next(), next(), next()) * 0.5 * scale;
+                            Ray::new(eye, (aim + jitter - eye).normalize())
+                        }
+                    })
+                    .collect();
+                for t_max in [f64::INFINITY, 12.0 * scale] {
+                    let (single, packet) = leaves_met(&bvh, &rays, t_max);
+                    for (s, p) in single.iter().zip(&packet) {
+                        assert!(
+                            s.iter().all(|leaf| p.binary_search(leaf).is_ok()),
+                            "scale {scale}, packet {k}: a leaf met alone was skipped"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn packets_with_unsafe_or_mixed_rays_still_meet_every_leaf() {
+        let prims = boxes(2000, 1.0, 0.0, 5);
+        let bvh = Bvh::build(&prims);
+        // Directions on both sides of every axis, and one axis-parallel ray (f64 fallback).
+        let eye = DVec3::new(5.0, 5.0, -20.0);
+        let mut rays: Vec<Ray> = (0..9)
+            .map(|k| {
+                let d = DVec3::new(k as f64 % 3.0 - 0.7, (k / 3) as f64 - 0.7, 3.0);
+                Ray::new(eye, d.normalize())
+            })
+            .collect();
+        let (single, packet) = leaves_met(&bvh, &rays, f64::INFINITY);
+        assert!(PacketBounds::new(&rays).is_some_and(|p| p.mixed == [true, true, false]));
+        assert!(single.iter().map(|s| s.len()).sum::<usize>() > 0);
+        for (s, p) in single.iter().zip(&packet) {
+            assert!(s.iter().all(|leaf| p.binary_search(leaf).is_ok()));
+        }
+        rays.push(Ray::new(eye, DVec3::Z));
+        assert!(PacketBounds::new(&rays).is_none());
+        let (single, packet) = leaves_met(&bvh, &rays, f64::INFINITY);
+        assert_eq!(single, packet);
+        assert!(PacketBounds::new(&[]).is_none());
+    }
+
+    #[test]
+    fn a_packet_that_misses_the_tree_meets_no_leaf() {
+        let prims = boxes(500, 1.0, 0.0, 9);
+        let bvh = Bvh::build(&prims);
+        let eye = DVec3::new(5.0, 5.0, -20.0);
+        // Looking away from the boxes.
+        let rays: Vec<Ray> = (0..64)
+            .map(|k| {
+                let d = DVec3::new((k % 8) as f64 * 0.01 + 0.003, (k / 8) as f64 * 0.01 + 0.003, -1.0);
+                Ray::new(eye, d.normalize())
+            })
+            .collect();
+        let mut limits = vec![f64::INFINITY; rays.len()];
+        let mut met = 0;
+        bvh.traverse_packet(&rays, &mut limits, |_, _, _| met += 1);
+        assert_eq!(met, 0);
+        let packet = PacketBounds::new(&rays).unwrap();
+        assert!(!packet.may_hit(&bvh.bounds(), f64::INFINITY));
+        let behind = Ray::new(eye, DVec3::new(0.01, 0.02, 1.0).normalize());
+        assert!(PacketBounds::new(&[behind]).unwrap().may_hit(&bvh.bounds(), f64::INFINITY));
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_packet_test_matches_the_scalar_one() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let bvh = Bvh::build(&boxes(3000, 1.0, 0.0, 11));
+        let mut next = crate::test_rng::uniform(3);
+        let mut hits = 0;
+        for k in 0..300 {
+            let eye = DVec3::new(next(), next(), next()) * 40.0 - 15.0;
+            let aim = DVec3::new(next(), next(), next()) * 10.0;
+            let rays: Vec<Ray> = (0..16)
+                .map(|_| {
+                    let spread = if k % 3 == 0 { 10.0 } else { 0.5 };
+                    let d = aim + DVec3::new(next(), next(), next()) * spread - eye;
+                    Ray::new(eye, d.normalize())
+                })
+                .collect();
+            let p = PacketBounds::new(&rays).unwrap();
+            let t_max = if k % 2 == 0 { f32::INFINITY } else { 25.0 };
+            for node in &bvh.nodes {
+                let scalar = p.hit(node, t_max);
+                // SAFETY: AVX2 was detected above.
+                let avx = unsafe { p.hit_avx2(node, t_max) };
+                assert_eq!(scalar.0, avx.0);
+                for c in 0..WIDTH {
+                    if scalar.0 & (1 << c) != 0 {
+                        assert_eq!(scalar.1[c].to_bits(), avx.1[c].to_bits());
+                    }
+                }
+                hits += scalar.0.count_ones();
+            }
+        }
+        assert!(hits > 1000, "{hits} box hits");
+    }
+}
