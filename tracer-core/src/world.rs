@@ -536,22 +536,15 @@ impl World {
         let n = rays.len();
         assert!(n <= PACKET && hits.len() == n, "a packet of {n} rays");
         hits.fill(None);
-        let Some(packet) = PacketBounds::new(rays) else {
-            // Rays out of the f32 tests' range: one by one, as the single-ray walks take them.
-            for (ray, hit) in rays.iter().zip(hits) {
-                *hit = match slots {
-                    Some(slots) => self.intersect_among(ray, t_min, t_max, slots),
-                    None => self.intersect(ray, t_min, t_max),
-                };
-            }
-            return;
-        };
         let mut limits = [t_max; PACKET];
         let limits = &mut limits[..n];
         let mut world_tri_rays = [None; PACKET];
         let mut visit = |slot: usize, limits: &mut [f64]| {
             self.object_packet(slot, rays, t_min, limits, hits, &mut world_tri_rays)
         };
+        // Every object takes a packet whatever its rays (a mesh's walk falls back to single
+        // rays where the f32 tests cannot take them); the packet's world-space bounds are
+        // needed only to skip objects without being given the candidates.
         match slots {
             Some(slots) => {
                 for &slot in slots {
@@ -559,17 +552,25 @@ impl World {
                 }
             }
             None if self.objects.len() == 1 => {
-                if packet.may_hit(&self.top.bounds(), t_max) {
+                if PacketBounds::new(rays).is_none_or(|p| p.may_hit(&self.top.bounds(), t_max)) {
                     visit(0, limits);
                 }
             }
-            None => {
-                self.top.traverse_packet_leaves(&packet, limits, |slots, limits| {
-                    for slot in slots {
-                        visit(slot, limits);
+            None => match PacketBounds::new(rays) {
+                Some(packet) => {
+                    self.top
+                        .traverse_packet_leaves(&packet, limits, |slots, limits| {
+                            for slot in slots {
+                                visit(slot, limits);
+                            }
+                        });
+                }
+                None => {
+                    for (ray, hit) in rays.iter().zip(hits) {
+                        *hit = self.intersect(ray, t_min, t_max);
                     }
-                });
-            }
+                }
+            },
         }
     }
 

@@ -16,6 +16,8 @@ use super::{
     leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Node, RayF32, F32_SAFE, NO_CHILD,
     SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH, WIDTH,
 };
+use glam::DVec3;
+
 use crate::geometry::{Aabb, Ray};
 
 /// The most rays [`Bvh::traverse_packet`] takes at once (one bit each in a `u64`).
@@ -54,30 +56,40 @@ impl PacketBounds {
             inv_hi: [0.0; 3],
             mixed: [false; 3],
         };
+        // One pass over the rays with plain comparisons (`f64::min` handles NaN at a few
+        // instructions more per lane, and this runs for every packet and object).
+        let lt = |a: DVec3, b: DVec3| DVec3::select(a.cmplt(b), a, b);
+        let gt = |a: DVec3, b: DVec3| DVec3::select(a.cmpgt(b), a, b);
+        let first = &rays[0];
+        let (mut o_lo, mut o_hi) = (first.origin, first.origin);
+        let (mut i_lo, mut i_hi) = (first.inv_dir, first.inv_dir);
+        let mut small = first.inv_dir.abs();
+        // A NaN or infinity anywhere makes this sum non-finite (and so does a sum past
+        // f64's range, of values the range check below refuses anyway).
+        let mut sum = DVec3::ZERO;
+        for r in rays {
+            o_lo = lt(r.origin, o_lo);
+            o_hi = gt(r.origin, o_hi);
+            i_lo = lt(r.inv_dir, i_lo);
+            i_hi = gt(r.inv_dir, i_hi);
+            small = lt(r.inv_dir.abs(), small);
+            sum += r.origin + r.inv_dir;
+        }
+        let finite = sum.is_finite();
         for a in 0..3 {
-            let (mut o_lo, mut o_hi) = (f64::INFINITY, f64::NEG_INFINITY);
-            let (mut i_lo, mut i_hi) = (f64::INFINITY, f64::NEG_INFINITY);
-            let mut safe = true;
-            for r in rays {
-                let (o, inv) = (r.origin[a], r.inv_dir[a]);
-                // The same range as `RayF32::new`'s, so that every ray of a packet also has
-                // its f32 single-ray set-up.
-                safe &= (o.abs() < F32_SAFE) & (inv.abs() < F32_SAFE) & (inv.abs() > 1.0 / F32_SAFE);
-                o_lo = o_lo.min(o);
-                o_hi = o_hi.max(o);
-                i_lo = i_lo.min(inv);
-                i_hi = i_hi.max(inv);
-            }
-            if !safe {
+            // The same range as `RayF32::new`'s, so that every ray of a packet also has its
+            // f32 single-ray set-up.
+            let big = o_hi[a].max(-o_lo[a]) < F32_SAFE && i_hi[a].max(-i_lo[a]) < F32_SAFE;
+            if !(finite && big && small[a] > 1.0 / F32_SAFE) {
                 return None;
             }
-            p.o_lo[a] = round_down(o_lo);
-            p.o_hi[a] = round_up(o_hi);
-            p.inv_lo[a] = round_down(i_lo);
-            p.inv_hi[a] = round_up(i_hi);
-            if i_lo > 0.0 {
+            p.o_lo[a] = round_down(o_lo[a]);
+            p.o_hi[a] = round_up(o_hi[a]);
+            p.inv_lo[a] = round_down(i_lo[a]);
+            p.inv_hi[a] = round_up(i_hi[a]);
+            if i_lo[a] > 0.0 {
                 (p.near[a], p.far[a]) = (2 * a, 2 * a + 1);
-            } else if i_hi < 0.0 {
+            } else if i_hi[a] < 0.0 {
                 (p.near[a], p.far[a]) = (2 * a + 1, 2 * a);
             } else {
                 p.mixed[a] = true;
@@ -103,11 +115,7 @@ impl PacketBounds {
                 if self.mixed[a] {
                     continue;
                 }
-                let (i0, i1) = (self.inv_lo[a], self.inv_hi[a]);
-                let (n0, n1) = (b[self.near[a]][c] - self.o_hi[a], b[self.near[a]][c] - self.o_lo[a]);
-                let (f0, f1) = (b[self.far[a]][c] - self.o_hi[a], b[self.far[a]][c] - self.o_lo[a]);
-                let tn = (n0 * i0).min(n0 * i1).min((n1 * i0).min(n1 * i1));
-                let tf = (f0 * i0).max(f0 * i1).max((f1 * i0).max(f1 * i1));
+                let (tn, tf) = self.slab(a, b[self.near[a]][c], b[self.far[a]][c]);
                 near = near.max(tn);
                 far = far.min(tf);
             }
@@ -180,17 +188,34 @@ impl PacketBounds {
     /// Whether some ray of the packet may enter `aabb` before `t_max` (conservative, like
     /// the node test): lets a caller skip a whole object for a packet that misses its box.
     pub fn may_hit(&self, aabb: &Aabb, t_max: f64) -> bool {
-        let mut node = Node {
-            bounds: [[f32::INFINITY; WIDTH]; 6],
-            index: [NO_CHILD; WIDTH],
-            count: [0; WIDTH],
-        };
+        let mut bounds = [0f32; 6];
         for a in 0..3 {
-            node.bounds[2 * a][0] = round_down(aabb.min[a]);
-            node.bounds[2 * a + 1][0] = round_up(aabb.max[a]);
+            bounds[2 * a] = round_down(aabb.min[a]);
+            bounds[2 * a + 1] = round_up(aabb.max[a]);
         }
-        node.index[0] = 0;
-        self.hit(&node, t_max_f32(t_max)).0 & 1 != 0
+        let mut near = 0f32;
+        let mut far = t_max_f32(t_max);
+        for a in 0..3 {
+            if self.mixed[a] {
+                continue;
+            }
+            let (tn, tf) = self.slab(a, bounds[self.near[a]], bounds[self.far[a]]);
+            near = near.max(tn);
+            far = far.min(tf);
+        }
+        near * SLAB_DOWN <= far * SLAB_UP + SLAB_ABS
+    }
+
+    /// Lower bound of entry and upper bound of exit over the packet for the planes at
+    /// `near` and `far` on axis `a` (not mixed), as [`PacketBounds::hit`] bounds them.
+    #[inline(always)]
+    fn slab(&self, a: usize, near: f32, far: f32) -> (f32, f32) {
+        let (i0, i1) = (self.inv_lo[a], self.inv_hi[a]);
+        let (n0, n1) = (near - self.o_hi[a], near - self.o_lo[a]);
+        let (f0, f1) = (far - self.o_hi[a], far - self.o_lo[a]);
+        let tn = (n0 * i0).min(n0 * i1).min((n1 * i0).min(n1 * i1));
+        let tf = (f0 * i0).max(f0 * i1).max((f1 * i0).max(f1 * i1));
+        (tn, tf)
     }
 }
 
@@ -457,8 +482,6 @@ impl Bvh {
 
 #[cfg(test)]
 mod tests {
-    use glam::DVec3;
-
     use super::*;
 
     /// Random small boxes around `scale`, offset by `offset`.
