@@ -181,13 +181,7 @@ fn trace_item(scene: &Scene, rays: &RaySets, measure: Measure, item: usize) -> u
                         len += 1;
                     }
                 }
-                world.intersect_packet(
-                    &packet[..len],
-                    rays.near,
-                    rays.far,
-                    None,
-                    &mut hits[..len],
-                );
+                world.intersect_packet(&packet[..len], rays.near, rays.far, None, &mut hits[..len]);
                 hit += hits[..len].iter().filter(|h| h.is_some()).count();
             }
             hit

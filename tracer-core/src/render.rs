@@ -13,11 +13,11 @@ use crate::accel::PACKET;
 use crate::adaptive::{in_second_half, luminance, SUMS};
 use crate::camera::{Camera, EyeRays, EyeSample};
 use crate::film::Image;
+use crate::geometry::Ray;
 use crate::photon::{caustic_map, CausticMap};
 use crate::sampler::SampleOrder;
 use crate::scene::Scene;
 use crate::settings::{RenderSettings, SettingsError, TileRect};
-use crate::geometry::Ray;
 use crate::shade::{Eye, RayCounts, Tracer};
 use crate::world::{Hit, World};
 
@@ -341,9 +341,8 @@ impl RowShader<'_> {
         while start < samples.end {
             let end = samples.end.min(start + PACKET as u32);
             self.eyes.clear();
-            self.eyes.extend(
-                (start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))),
-            );
+            self.eyes
+                .extend((start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))));
             let n = self.eyes.len();
             let mut rays = [Ray::new(DVec3::ONE, DVec3::ONE); PACKET];
             for (r, e) in rays.iter_mut().zip(&self.eyes) {

@@ -480,8 +480,7 @@ impl World {
         let mut t_max = t_max;
         self.traverse_top::<false>(ray, &mut t_max, |slot, t_max| {
             let bound = tie_bound(best.is_some(), *t_max);
-            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, bound, &mut world_tri_ray)
-            {
+            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, bound, &mut world_tri_ray) {
                 keep_nearer(&mut best, t_max, slot, h);
             }
             false
@@ -590,7 +589,8 @@ impl World {
         let Object::Model(i) = self.objects[slot] else {
             for i in 0..n {
                 let bound = tie_bound(hits[i].is_some(), limits[i]);
-                let h = self.hit_object::<false>(slot, &rays[i], t_min, bound, &mut world_tri_rays[i]);
+                let h =
+                    self.hit_object::<false>(slot, &rays[i], t_min, bound, &mut world_tri_rays[i]);
                 if let Some(h) = h {
                     keep_nearer(&mut hits[i], &mut limits[i], slot, h);
                 }
@@ -1324,18 +1324,29 @@ mod tests {
                         found[i],
                         among[i]
                     );
-                    assert!(same_hit(single, world.intersect_among(ray, t_min, t_max, &all)));
+                    assert!(same_hit(
+                        single,
+                        world.intersect_among(ray, t_min, t_max, &all)
+                    ));
                     hits += single.is_some() as usize;
                     rays_traced += 1;
                 }
             }
-            assert!(hits > rays_traced / 8 && hits < rays_traced, "{hits} of {rays_traced}");
+            assert!(
+                hits > rays_traced / 8 && hits < rays_traced,
+                "{hits} of {rays_traced}"
+            );
         }
         // An empty packet, and one no ray of which hits anything.
         let world = packet_world(1.0, DVec3::ZERO);
         world.intersect_packet(&[], 0.0, f64::INFINITY, None, &mut []);
         let away: Vec<Ray> = (0..64)
-            .map(|i| Ray::new(DVec3::ZERO, DVec3::new(i as f64 * 0.01, 0.1, 1.0).normalize()))
+            .map(|i| {
+                Ray::new(
+                    DVec3::ZERO,
+                    DVec3::new(i as f64 * 0.01, 0.1, 1.0).normalize(),
+                )
+            })
             .collect();
         let mut found = vec![None; 64];
         world.intersect_packet(&away, 0.0, f64::INFINITY, None, &mut found);
@@ -1381,7 +1392,11 @@ mod tests {
                 .iter()
                 .copied()
                 .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            ties += (brute.iter().filter(|h| Some(h.0) == best.map(|b| b.0)).count() > 1) as usize;
+            ties += (brute
+                .iter()
+                .filter(|h| Some(h.0) == best.map(|b| b.0))
+                .count()
+                > 1) as usize;
             let hit = world.intersect(ray, 0.0, f64::INFINITY);
             assert_eq!(hit.map(|h| (h.t, h.prim as usize)), best);
         }

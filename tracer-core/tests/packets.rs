@@ -14,7 +14,6 @@ fn eye_ray_packets_find_each_rays_own_hit_on_course_scenes() {
         let settings = common::settings(96, 72, 1);
         let camera = *Renderer::new(&scene, &settings).unwrap().camera();
         let world = scene.world();
-        let stage = scene.stage(settings.texture_filter, None);
         let (w, h) = (settings.width as usize, settings.height as usize);
         let mut hits = 0;
         for (bx, by) in (0..h / 8).flat_map(|y| (0..w / 8).map(move |x| (x * 8, y * 8))) {
@@ -33,8 +32,8 @@ fn eye_ray_packets_find_each_rays_own_hit_on_course_scenes() {
                     // The distance, and through the surface the triangle and barycentrics.
                     let key = |hit: &Option<tracer_core::world::Hit>| {
                         hit.map(|hit| {
-                            let s = stage.surface(ray, &hit);
-                            (hit.t.to_bits(), s.normal.to_array().map(f64::to_bits))
+                            let p = world.patch(ray, &hit);
+                            (hit.t.to_bits(), p.normal.to_array().map(f64::to_bits))
                         })
                     };
                     assert_eq!(key(&single), key(packet), "{file}: block ({bx}, {by})");

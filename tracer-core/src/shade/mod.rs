@@ -230,7 +230,15 @@ impl<'a> Tracer<'a> {
                 let reflected =
                     spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
                 color += tint
-                    * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, Eye::Walk);
+                    * self.radiance(
+                        &reflected,
+                        0.0,
+                        f64::INFINITY,
+                        level + 1,
+                        media,
+                        rng,
+                        Eye::Walk,
+                    );
             }
             return color;
         }
@@ -249,7 +257,15 @@ impl<'a> Tracer<'a> {
             let reflected = spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
             color += reflectance
                 * tint
-                * self.radiance(&reflected, 0.0, f64::INFINITY, level + 1, media, rng, Eye::Walk);
+                * self.radiance(
+                    &reflected,
+                    0.0,
+                    f64::INFINITY,
+                    level + 1,
+                    media,
+                    rng,
+                    Eye::Walk,
+                );
         }
         if reflectance < 1.0 {
             if let Some(dir) = crossing.refracted(d) {

@@ -409,7 +409,8 @@ impl Bvh {
             let (mask, dist) = packet_hit(node, t_max_f32(far));
             let leaves = mask & leaf_mask(node);
             let mut inner = mask & !leaves;
-            let parts = leaves != 0 || (inner & inner.wrapping_sub(1) != 0 && active & (active - 1) != 0);
+            let parts =
+                leaves != 0 || (inner & inner.wrapping_sub(1) != 0 && active & (active - 1) != 0);
             let split = if parts {
                 let split = per_ray(node, leaves, inner, active, t_max);
                 far = farthest(t_max);
@@ -534,7 +535,8 @@ mod tests {
                 // origins in random directions (incoherent), of 1 to 64 rays.
                 let n = 1 + (k * 13) % PACKET;
                 let eye = centre + DVec3::new(next() - 0.5, next() - 0.5, 2.0) * 20.0 * scale;
-                let aim = centre + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 8.0 * scale;
+                let aim =
+                    centre + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 8.0 * scale;
                 let rays: Vec<Ray> = (0..n)
                     .map(|_| {
                         if k % 4 == 3 {
@@ -593,7 +595,11 @@ mod tests {
         // Looking away from the boxes.
         let rays: Vec<Ray> = (0..64)
             .map(|k| {
-                let d = DVec3::new((k % 8) as f64 * 0.01 + 0.003, (k / 8) as f64 * 0.01 + 0.003, -1.0);
+                let d = DVec3::new(
+                    (k % 8) as f64 * 0.01 + 0.003,
+                    (k / 8) as f64 * 0.01 + 0.003,
+                    -1.0,
+                );
                 Ray::new(eye, d.normalize())
             })
             .collect();
@@ -604,7 +610,9 @@ mod tests {
         let packet = PacketBounds::new(&rays).unwrap();
         assert!(!packet.may_hit(&bvh.bounds(), f64::INFINITY));
         let behind = Ray::new(eye, DVec3::new(0.01, 0.02, 1.0).normalize());
-        assert!(PacketBounds::new(&[behind]).unwrap().may_hit(&bvh.bounds(), f64::INFINITY));
+        assert!(PacketBounds::new(&[behind])
+            .unwrap()
+            .may_hit(&bvh.bounds(), f64::INFINITY));
     }
 
     #[cfg(target_arch = "x86_64")]
