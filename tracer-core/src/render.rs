@@ -252,6 +252,8 @@ impl<'a> Renderer<'a> {
             order: Vec::new(),
             slots: Vec::new(),
             eyes: Vec::new(),
+            rays: Vec::new(),
+            hits: Vec::new(),
             radiance_rays: 0,
             shadow_rays: 0,
         };
@@ -279,6 +281,9 @@ struct RowShader<'r> {
     slots: Vec<u32>,
     /// The eye samples of the current packet.
     eyes: Vec<EyeSample>,
+    /// Their rays and hits (kept for the row, so no allocation per pixel).
+    rays: Vec<Ray>,
+    hits: Vec<Option<Hit>>,
     radiance_rays: u64,
     shadow_rays: u64,
 }
@@ -343,16 +348,14 @@ impl RowShader<'_> {
             self.eyes.clear();
             self.eyes
                 .extend((start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))));
-            let n = self.eyes.len();
-            let mut rays = [Ray::new(DVec3::ONE, DVec3::ONE); PACKET];
-            for (r, e) in rays.iter_mut().zip(&self.eyes) {
-                *r = e.ray;
-            }
+            self.rays.clear();
+            self.rays.extend(self.eyes.iter().map(|e| e.ray));
+            self.hits.resize(self.eyes.len(), None);
+            let hits = &mut self.hits[..];
             let (near, far) = (self.eyes[0].near, self.eyes[0].far);
-            let mut hits: [Option<Hit>; PACKET] = [None; PACKET];
             if self.eyes.iter().all(|e| e.near == near && e.far == far) {
                 self.world
-                    .intersect_packet(&rays[..n], near, far, Some(slots), &mut hits[..n]);
+                    .intersect_packet(&self.rays, near, far, Some(slots), hits);
             } else {
                 for (h, e) in hits.iter_mut().zip(&self.eyes) {
                     *h = self.world.intersect_among(&e.ray, e.near, e.far, slots);
@@ -365,7 +368,7 @@ impl RowShader<'_> {
                     ray.far,
                     &mut ray.rng,
                     ray.gloss,
-                    Eye::Found(hits[k]),
+                    Eye::Found(self.hits[k]),
                 );
                 add_sample::<ESTIMATE>(acc, start + k as u32, color, counts);
                 self.radiance_rays += counts.radiance as u64;

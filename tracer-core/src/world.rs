@@ -599,17 +599,21 @@ impl World {
         };
         let model = &self.models[i as usize];
         let mesh = &self.meshes[model.mesh as usize];
-        let mut local = [Ray::new(DVec3::ONE, DVec3::ONE); PACKET];
+        // Left uninitialised past `n`: a pixel's packet holds a few rays, and filling 64
+        // rays per object and pixel was a measurable share of a render.
+        let mut local = [const { std::mem::MaybeUninit::<Ray>::uninit() }; PACKET];
         let mut bounds = [0.0; PACKET];
         for i in 0..n {
-            local[i] = model.transform.ray_to_local(&rays[i]);
+            local[i].write(model.transform.ray_to_local(&rays[i]));
             bounds[i] = tie_bound(hits[i].is_some(), limits[i]);
         }
+        // SAFETY: the first `n` entries were written above; MaybeUninit<Ray> has Ray's layout.
+        let local: &[Ray] = unsafe { std::slice::from_raw_parts(local.as_ptr().cast::<Ray>(), n) };
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
         let mut found: [Option<ObjectHit>; PACKET] = [None; PACKET];
         mesh.bvh
-            .traverse_packet(&local[..n], &mut bounds[..n], |i, tris, t_max| {
+            .traverse_packet(local, &mut bounds[..n], |i, tris, t_max| {
                 let (tri_ray, ray32) = tri_rays[i].get_or_insert_with(|| {
                     let tri_ray = TriangleRay::new(&local[i]);
                     (tri_ray, TriangleRayF32::new(&tri_ray))
