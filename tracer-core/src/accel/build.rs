@@ -1,6 +1,7 @@
 //! Building a [`Bvh`]: binned SAH over the primitives' bounds (rounded outward to f32, binned
-//! with f32 SIMD min/max, the references partitioned in place), large subtrees in parallel,
-//! then the binary tree collapsed into `WIDTH`-wide nodes with outward-rounded f32 boxes.
+//! with f32 SIMD min/max, the references partitioned in place), collapsed into `WIDTH`-wide
+//! nodes with outward-rounded f32 boxes as it is built (no binary tree is kept), large
+//! subtrees in parallel.
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -20,38 +21,115 @@ const INTERSECT_COST: f64 = 1.0;
 /// Subtrees at least this large are built on another rayon task.
 const PARALLEL_THRESHOLD: usize = 4096;
 
-/// The binary tree the builder makes before it is packed into [`Node`]s.
-enum Tree {
-    Leaf {
-        bounds: Aabb,
-        first: u32,
-        count: u32,
-    },
-    Interior {
-        bounds: Aabb,
-        children: Box<[Tree; 2]>,
-    },
+/// A node of the binary SAH tree: a range of the references with its bounds.
+#[derive(Clone, Copy)]
+struct Part {
+    /// Where the range starts in the whole reference array.
+    first: usize,
+    len: usize,
+    /// Depth in the binary tree (the root's is 0).
+    depth: usize,
+    bounds: Aabb,
+    centroids: Box4,
 }
 
-impl Tree {
-    fn bounds(&self) -> Aabb {
+/// A binary node once decided: a leaf, or split with its references partitioned between the
+/// two children.
+#[derive(Clone, Copy)]
+enum Slot {
+    Leaf(Part),
+    Split(Part, [Part; 2]),
+}
+
+impl Slot {
+    fn part(&self) -> &Part {
         match self {
-            Tree::Leaf { bounds, .. } | Tree::Interior { bounds, .. } => *bounds,
+            Slot::Leaf(p) | Slot::Split(p, _) => p,
+        }
+    }
+}
+
+/// Wide nodes in depth-first order, the leaves' primitive order (padded per leaf) and the
+/// binary tree's depth, of the whole tree or of a subtree built on its own task; in the
+/// latter, child indices count from the subtree's first node and leaf slots from its first
+/// slot until [`Out::append`] moves them.
+struct Out {
+    nodes: Vec<Node>,
+    order: Vec<u32>,
+    depth: usize,
+}
+
+impl Out {
+    fn new() -> Out {
+        Out {
+            nodes: Vec::new(),
+            order: Vec::new(),
+            depth: 0,
         }
     }
 
-    fn depth(&self) -> usize {
-        match self {
-            Tree::Leaf { .. } => 1,
-            Tree::Interior { children, .. } => 1 + children[0].depth().max(children[1].depth()),
+    /// Appends a wide node with `slots`' boxes (links still unset); returns its index.
+    fn push_node(&mut self, slots: &[Slot]) -> usize {
+        let mut node = Node {
+            bounds: [
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+            ],
+            index: [NO_CHILD; WIDTH],
+            count: [0; WIDTH],
+        };
+        for (c, slot) in slots.iter().enumerate() {
+            let b = to_f32_box(slot.part().bounds);
+            for a in 0..3 {
+                node.bounds[2 * a][c] = b[a];
+                node.bounds[2 * a + 1][c] = b[a + 3];
+            }
         }
+        self.nodes.push(node);
+        self.nodes.len() - 1
+    }
+
+    /// Makes slot `c` of node `index` the leaf `part` (its references `prims`): its
+    /// primitives join the order, the leaf starting on a multiple of `align`.
+    fn leaf(&mut self, index: usize, c: usize, part: &Part, prims: &[PrimRef], align: usize) {
+        let start = self.order.len();
+        self.order.extend(prims.iter().map(PrimRef::id));
+        self.order
+            .resize(self.order.len().next_multiple_of(align), PADDING);
+        self.nodes[index].index[c] = start as u32;
+        self.nodes[index].count[c] = part.len as u32;
+        self.depth = self.depth.max(part.depth + 1);
+    }
+
+    /// Appends a subtree built on its own, its links moved to their new places; returns the
+    /// index of its first node.
+    fn append(&mut self, sub: Out) -> u32 {
+        let (node_base, slot_base) = (self.nodes.len() as u32, self.order.len() as u32);
+        self.nodes.extend(sub.nodes.iter().map(|n| {
+            let mut n = *n;
+            for c in 0..WIDTH {
+                if n.count[c] > 0 {
+                    n.index[c] += slot_base;
+                } else if n.index[c] != NO_CHILD {
+                    n.index[c] += node_base;
+                }
+            }
+            n
+        }));
+        self.order.extend_from_slice(&sub.order);
+        self.depth = self.depth.max(sub.depth);
+        node_base
     }
 }
 
 impl Bvh {
-    /// Builds with the binned surface-area heuristic (16 bins on each axis), large subtrees
-    /// in parallel, then collapses the binary tree into `WIDTH`-wide nodes. The result does not
-    /// depend on the thread count.
+    /// Builds with the binned surface-area heuristic (16 bins on each axis), the binary tree
+    /// collapsed into `WIDTH`-wide nodes as it is built, large subtrees in parallel. The
+    /// result does not depend on the thread count.
     pub fn build(bounds: &[Aabb]) -> Bvh {
         Bvh::build_aligned(bounds, 1)
     }
@@ -91,58 +169,38 @@ impl Bvh {
             align,
             align_shift: align.is_power_of_two().then(|| align.trailing_zeros()),
         };
-        let mut tree = builder.build(&mut refs, 0, 0, root_bounds, root_centroids);
-        let mut order = Vec::with_capacity(refs.len());
-        refs.par_iter()
-            .map(PrimRef::id)
-            .collect_into_vec(&mut order);
-        drop(refs);
-        if align > 1 {
-            let mut aligned = Vec::with_capacity(order.len() + order.len() / 2);
-            align_leaves(&mut tree, &order, align, &mut aligned);
-            order = aligned;
-        }
-        let mut nodes = with_capacity_huge(bounds.len() / 4 + 1);
-        let root_bounds = tree.bounds();
-        let depth = tree.depth();
-        match &tree {
-            Tree::Interior { children, .. } => {
-                pack(children, &mut nodes);
-            }
-            leaf @ Tree::Leaf { .. } => {
+        let root = Part {
+            first: 0,
+            len: refs.len(),
+            depth: 0,
+            bounds: root_bounds,
+            centroids: root_centroids,
+        };
+        let padded = if align > 1 { refs.len() / 2 } else { 0 };
+        let mut out = Out {
+            nodes: with_capacity_huge(bounds.len() / 4 + 1),
+            order: Vec::with_capacity(refs.len() + padded),
+            depth: 0,
+        };
+        match builder.decide(&mut refs, root) {
+            Slot::Split(_, children) => builder.wide(&mut refs, 0, children, &mut out),
+            leaf @ Slot::Leaf(part) => {
                 // A lone leaf: one node with one used slot.
-                pack_node(&[leaf], &mut nodes);
+                let index = out.push_node(&[leaf]);
+                out.leaf(index, 0, &part, &refs, align);
             }
         }
         Bvh {
-            nodes,
-            order,
+            nodes: out.nodes,
+            order: out.order,
             bounds: Some(root_bounds),
-            depth,
+            depth: out.depth,
         }
     }
 }
 
 /// Marks a padding slot in the `order` of [`Bvh::build_aligned`].
 pub const PADDING: u32 = u32::MAX;
-
-/// Copies the leaves' primitives from `order` to `out` in leaf order, each leaf starting on a
-/// multiple of `align` (gaps filled with [`PADDING`]), and points the leaves at their new slots.
-fn align_leaves(tree: &mut Tree, order: &[u32], align: usize, out: &mut Vec<u32>) {
-    match tree {
-        Tree::Leaf { first, count, .. } => {
-            let start = out.len();
-            out.extend_from_slice(&order[*first as usize..(*first + *count) as usize]);
-            out.resize(out.len().next_multiple_of(align), PADDING);
-            *first = start as u32;
-        }
-        Tree::Interior { children, .. } => {
-            for child in children.iter_mut() {
-                align_leaves(child, order, align, out);
-            }
-        }
-    }
-}
 
 /// f32 box rounded outward, so it always contains the f64 box.
 pub(super) fn to_f32_box(b: Aabb) -> [f32; 6] {
@@ -165,66 +223,6 @@ pub(super) fn to_f32_box(b: Aabb) -> [f32; 6] {
         round_up(b.max.y),
         round_up(b.max.z),
     ]
-}
-
-/// Appends the wide node that replaces the binary node with `children`: the binary tree is
-/// opened below it, largest interior child first, until it has `WIDTH` children. Subtrees follow
-/// depth first; returns the node's index.
-fn pack(children: &[Tree; 2], nodes: &mut Vec<Node>) -> u32 {
-    let mut slots: Vec<&Tree> = Vec::with_capacity(WIDTH);
-    slots.extend([&children[0], &children[1]]);
-    while slots.len() < WIDTH {
-        let widest = slots
-            .iter()
-            .enumerate()
-            .filter(|(_, t)| matches!(t, Tree::Interior { .. }))
-            .max_by(|(_, a), (_, b)| {
-                a.bounds()
-                    .surface_area()
-                    .total_cmp(&b.bounds().surface_area())
-            })
-            .map(|(i, _)| i);
-        let Some(i) = widest else { break };
-        let Tree::Interior { children, .. } = slots[i] else {
-            unreachable!()
-        };
-        slots[i] = &children[0];
-        slots.insert(i + 1, &children[1]);
-    }
-    pack_node(&slots, nodes)
-}
-
-fn pack_node(slots: &[&Tree], nodes: &mut Vec<Node>) -> u32 {
-    let index = nodes.len();
-    let mut node = Node {
-        bounds: [
-            [f32::INFINITY; WIDTH],
-            [f32::NEG_INFINITY; WIDTH],
-            [f32::INFINITY; WIDTH],
-            [f32::NEG_INFINITY; WIDTH],
-            [f32::INFINITY; WIDTH],
-            [f32::NEG_INFINITY; WIDTH],
-        ],
-        index: [NO_CHILD; WIDTH],
-        count: [0; WIDTH],
-    };
-    for (c, child) in slots.iter().enumerate() {
-        let b = to_f32_box(child.bounds());
-        for a in 0..3 {
-            node.bounds[2 * a][c] = b[a];
-            node.bounds[2 * a + 1][c] = b[a + 3];
-        }
-    }
-    nodes.push(node);
-    for (c, child) in slots.iter().enumerate() {
-        let (child_index, count) = match child {
-            Tree::Leaf { first, count, .. } => (*first, *count),
-            Tree::Interior { children, .. } => (pack(children, nodes), 0),
-        };
-        nodes[index].index[c] = child_index;
-        nodes[index].count[c] = count;
-    }
-    index as u32
 }
 
 struct Builder {
@@ -425,50 +423,142 @@ impl Bins {
 const PARALLEL_BINNING: usize = 16 * 1024;
 
 impl Builder {
-    /// `bounds` and `centroid_bounds` are those of `prims`, found by the caller.
-    fn build(
-        &self,
-        prims: &mut [PrimRef],
-        first: usize,
-        depth: usize,
-        bounds: Aabb,
-        centroid_bounds: Box4,
-    ) -> Tree {
-        let leaf = Tree::Leaf {
-            bounds,
-            first: first as u32,
-            count: prims.len() as u32,
-        };
+    /// Decides the binary node `part`, whose references are `prims`: a leaf, or split with
+    /// `prims` partitioned between its children.
+    fn decide(&self, prims: &mut [PrimRef], part: Part) -> Slot {
         // The depth cap keeps traversal's fixed stack from overflowing on adversarial input.
-        if prims.len() <= 1 || depth + 2 >= MAX_DEPTH {
-            return leaf;
+        if prims.len() <= 1 || part.depth + 2 >= MAX_DEPTH {
+            return Slot::Leaf(part);
         }
         // One block is a leaf whatever the split: a split costs a traversal step more.
         if prims.len() <= MAX_LEAF.min(self.align) {
-            return leaf;
+            return Slot::Leaf(part);
         }
-        let Some(split) = self.find_split(prims, bounds, centroid_bounds) else {
-            return leaf;
+        let Some(split) = self.find_split(prims, part.bounds, part.centroids) else {
+            return Slot::Leaf(part);
         };
         let (mid, left_centroids, right_centroids) = self.partition(prims, &split);
         if mid == 0 || mid == prims.len() {
-            return leaf;
+            return Slot::Leaf(part);
         }
-        let (left, right) = prims.split_at_mut(mid);
-        let (l, r) = if prims_len(left, right) >= PARALLEL_THRESHOLD {
-            rayon::join(
-                || self.build(left, first, depth + 1, split.left, left_centroids),
-                || self.build(right, first + mid, depth + 1, split.right, right_centroids),
-            )
-        } else {
-            (
-                self.build(left, first, depth + 1, split.left, left_centroids),
-                self.build(right, first + mid, depth + 1, split.right, right_centroids),
-            )
-        };
-        Tree::Interior {
+        let child = |first, len, bounds, centroids| Part {
+            first,
+            len,
+            depth: part.depth + 1,
             bounds,
-            children: Box::new([l, r]),
+            centroids,
+        };
+        Slot::Split(
+            part,
+            [
+                child(part.first, mid, split.left, left_centroids),
+                child(
+                    part.first + mid,
+                    prims.len() - mid,
+                    split.right,
+                    right_centroids,
+                ),
+            ],
+        )
+    }
+
+    /// Decides both children of a split node; `prims` holds exactly their references.
+    fn decide_pair(&self, prims: &mut [PrimRef], children: [Part; 2]) -> [Slot; 2] {
+        let (left, right) = prims.split_at_mut(children[0].len);
+        if left.len().min(right.len()) >= PARALLEL_THRESHOLD {
+            let (l, r) = rayon::join(
+                || self.decide(left, children[0]),
+                || self.decide(right, children[1]),
+            );
+            [l, r]
+        } else {
+            [
+                self.decide(left, children[0]),
+                self.decide(right, children[1]),
+            ]
+        }
+    }
+
+    /// Appends to `out` the wide node that replaces a split binary node, then its subtrees
+    /// depth first. `prims` are the node's references, starting at `base` in the whole array;
+    /// `children` its binary children. The binary tree is opened below the node, its widest
+    /// split slot first (by surface area, the last of equals), until it has `WIDTH` slots.
+    fn wide(&self, prims: &mut [PrimRef], base: usize, children: [Part; 2], out: &mut Out) {
+        let [a, b] = self.decide_pair(prims, children);
+        let mut slots = [a; WIDTH];
+        slots[1] = b;
+        let mut len = 2;
+        while len < WIDTH {
+            let mut widest: Option<(usize, f64)> = None;
+            for (i, slot) in slots[..len].iter().enumerate() {
+                if let Slot::Split(part, _) = slot {
+                    let area = part.bounds.surface_area();
+                    if widest.is_none_or(|(_, w)| area.total_cmp(&w).is_ge()) {
+                        widest = Some((i, area));
+                    }
+                }
+            }
+            let Some((i, _)) = widest else { break };
+            let Slot::Split(part, children) = slots[i] else {
+                unreachable!()
+            };
+            let [l, r] = self.decide_pair(&mut prims[part.first - base..][..part.len], children);
+            slots.copy_within(i + 1..len, i + 2);
+            slots[i] = l;
+            slots[i + 1] = r;
+            len += 1;
+        }
+        let slots = &slots[..len];
+        let index = out.push_node(slots);
+        if prims.len() < 2 * PARALLEL_THRESHOLD {
+            for (c, slot) in slots.iter().enumerate() {
+                let range = &mut prims[slot.part().first - base..][..slot.part().len];
+                match slot {
+                    Slot::Leaf(part) => out.leaf(index, c, part, range, self.align),
+                    Slot::Split(part, children) => {
+                        let child = out.nodes.len() as u32;
+                        self.wide(range, part.first, *children, out);
+                        out.nodes[index].index[c] = child;
+                    }
+                }
+            }
+            return;
+        }
+        // Large: the split slots' subtrees are built on their own tasks, then appended in
+        // slot order, so the layout is the same as built in one.
+        let mut rest = &mut *prims;
+        let pieces: Vec<(&mut [PrimRef], &Slot)> = slots
+            .iter()
+            .map(|slot| {
+                let (head, tail) = std::mem::take(&mut rest).split_at_mut(slot.part().len);
+                rest = tail;
+                (head, slot)
+            })
+            .collect();
+        let subtrees: Vec<Option<Out>> = pieces
+            .into_par_iter()
+            .map(|(range, slot)| match slot {
+                Slot::Leaf(_) => None,
+                Slot::Split(part, children) => {
+                    let mut sub = Out::new();
+                    self.wide(range, part.first, *children, &mut sub);
+                    Some(sub)
+                }
+            })
+            .collect();
+        for (c, (slot, sub)) in slots.iter().zip(subtrees).enumerate() {
+            match slot {
+                Slot::Leaf(part) => out.leaf(
+                    index,
+                    c,
+                    part,
+                    &prims[part.first - base..][..part.len],
+                    self.align,
+                ),
+                Slot::Split(..) => {
+                    out.nodes[index].index[c] = out.append(sub.expect("built above"));
+                }
+            }
         }
     }
 
@@ -623,10 +713,6 @@ impl Builder {
             prims.swap(i, j - 1);
         }
     }
-}
-
-fn prims_len(a: &[PrimRef], b: &[PrimRef]) -> usize {
-    a.len().min(b.len())
 }
 
 #[cfg(test)]
