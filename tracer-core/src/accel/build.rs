@@ -11,6 +11,7 @@ use super::memory::with_capacity_huge;
 use crate::geometry::Aabb;
 
 const BINS: usize = 16;
+const _: () = assert!(BINS.is_power_of_two());
 const MAX_LEAF: usize = 4;
 /// With primitives in blocks, a leaf may hold this many blocks when the SAH finds that
 /// cheaper than splitting: a second block in a leaf costs less than the node visit a split
@@ -35,6 +36,9 @@ struct Part {
 
 /// A binary node once decided: a leaf, or split with its references partitioned between the
 /// two children.
+// Slots live in a fixed array on the stack, written once each; boxing the split variant
+// would allocate per binary node, which is what this builder stopped doing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Copy)]
 enum Slot {
     Leaf(Part),
@@ -69,7 +73,7 @@ impl Out {
     }
 
     /// Appends a wide node with `slots`' boxes (links still unset); returns its index.
-    fn push_node(&mut self, slots: &[Slot]) -> usize {
+    fn push_node(&mut self, slots: &[&Slot]) -> usize {
         let mut node = Node {
             bounds: [
                 [f32::INFINITY; WIDTH],
@@ -186,7 +190,7 @@ impl Bvh {
             Slot::Split(_, children) => builder.wide(&mut refs, 0, children, &mut out),
             leaf @ Slot::Leaf(part) => {
                 // A lone leaf: one node with one used slot.
-                let index = out.push_node(&[leaf]);
+                let index = out.push_node(&[&leaf]);
                 out.leaf(index, 0, &part, &refs, align);
             }
         }
@@ -310,9 +314,27 @@ impl Box4 {
     /// they are worked out, so binning and partitioning agree.
     /// The fourth lane is 0: in a [`PrimRef`] it holds an index, and differences of those
     /// bit patterns would be subnormal (a slow path on the CPU).
+    #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
     fn centroid2(&self) -> [f32; 4] {
         std::array::from_fn(|k| if k < 3 { self.lo[k] + self.hi[k] } else { 0.0 })
+    }
+
+    /// The portable version's sums in one SSE add, the fourth lane masked to +0 (built lane
+    /// by lane, the compiler shuffled scalars into place for every reference).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn centroid2(&self) -> [f32; 4] {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE2 is part of the x86_64 baseline; a Box4's halves are 16-byte aligned
+        // (the struct is 32-byte aligned, `hi` at offset 16).
+        unsafe {
+            let keep = _mm_castsi128_ps(_mm_set_epi32(0, -1, -1, -1));
+            let sum = _mm_add_ps(_mm_load_ps(self.lo.as_ptr()), _mm_load_ps(self.hi.as_ptr()));
+            let mut out = [0.0; 4];
+            _mm_storeu_ps(out.as_mut_ptr(), _mm_and_ps(sum, keep));
+            out
+        }
     }
 
     /// The bins of a doubled centroid on each axis (the fourth lane unused): truncated and
@@ -373,22 +395,44 @@ impl Box4 {
         self.grow(&Box4 { lo: *p, hi: *p });
     }
 
-    /// Surface area of a non-empty box (the sweeps only measure boxes holding primitives).
-    #[inline(always)]
-    fn area(&self) -> f64 {
-        let (x, y, z) = (
-            self.hi[0] - self.lo[0],
-            self.hi[1] - self.lo[1],
-            self.hi[2] - self.lo[2],
-        );
-        (2.0 * (x * y + y * z + z * x)) as f64
-    }
-
     fn aabb(&self) -> Aabb {
         Aabb {
             min: DVec3::new(self.lo[0] as f64, self.lo[1] as f64, self.lo[2] as f64),
             max: DVec3::new(self.hi[0] as f64, self.hi[1] as f64, self.hi[2] as f64),
         }
+    }
+}
+
+/// One side of every candidate split of an axis, in columns: the extents of its box and its
+/// number of primitives (entries outside the candidates are zero, or unused).
+#[derive(Default)]
+struct Sides {
+    x: [f32; BINS],
+    y: [f32; BINS],
+    z: [f32; BINS],
+    count: [u32; BINS],
+}
+
+impl Sides {
+    #[inline(always)]
+    fn set(&mut self, split: usize, b: &Box4, count: u32) {
+        self.x[split] = b.hi[0] - b.lo[0];
+        self.y[split] = b.hi[1] - b.lo[1];
+        self.z[split] = b.hi[2] - b.lo[2];
+        self.count[split] = count;
+    }
+
+    /// The surface areas of the first `lanes` entries (only those holding primitives are
+    /// read). Lane by lane the same f32 operations in the same order as one box at a time,
+    /// so the costs, and the tree, do not change; in columns they compile to SIMD.
+    #[inline(always)]
+    fn areas(&self, lanes: usize) -> [f32; BINS] {
+        let mut out = [0.0; BINS];
+        let extents = self.x.iter().zip(&self.y).zip(&self.z);
+        for (a, ((&x, &y), &z)) in out[..lanes].iter_mut().zip(extents) {
+            *a = 2.0 * (x * y + y * z + z * x);
+        }
+        out
     }
 }
 
@@ -462,20 +506,19 @@ impl Builder {
         )
     }
 
-    /// Decides both children of a split node; `prims` holds exactly their references.
-    fn decide_pair(&self, prims: &mut [PrimRef], children: [Part; 2]) -> [Slot; 2] {
+    /// Decides both children of a split node into `out[0]` and `out[1]`; `prims` holds
+    /// exactly their references.
+    fn decide_pair(&self, prims: &mut [PrimRef], children: [Part; 2], out: &mut [Option<Slot>]) {
         let (left, right) = prims.split_at_mut(children[0].len);
+        let (l, r) = out.split_at_mut(1);
         if left.len().min(right.len()) >= PARALLEL_THRESHOLD {
-            let (l, r) = rayon::join(
-                || self.decide(left, children[0]),
-                || self.decide(right, children[1]),
+            rayon::join(
+                || l[0] = Some(self.decide(left, children[0])),
+                || r[0] = Some(self.decide(right, children[1])),
             );
-            [l, r]
         } else {
-            [
-                self.decide(left, children[0]),
-                self.decide(right, children[1]),
-            ]
+            l[0] = Some(self.decide(left, children[0]));
+            r[0] = Some(self.decide(right, children[1]));
         }
     }
 
@@ -484,14 +527,17 @@ impl Builder {
     /// `children` its binary children. The binary tree is opened below the node, its widest
     /// split slot first (by surface area, the last of equals), until it has `WIDTH` slots.
     fn wide(&self, prims: &mut [PrimRef], base: usize, children: [Part; 2], out: &mut Out) {
-        let [a, b] = self.decide_pair(prims, children);
-        let mut slots = [a; WIDTH];
-        slots[1] = b;
-        let mut len = 2;
+        // The decided binary nodes, written once; the slots are indices into them, so that
+        // opening one moves bytes instead of 400-byte slots.
+        let mut decided: [Option<Slot>; 2 * WIDTH - 2] = [None; 2 * WIDTH - 2];
+        let mut order = [0u8; WIDTH];
+        self.decide_pair(prims, children, &mut decided[..2]);
+        order[1] = 1;
+        let (mut len, mut used) = (2, 2);
         while len < WIDTH {
             let mut widest: Option<(usize, f64)> = None;
-            for (i, slot) in slots[..len].iter().enumerate() {
-                if let Slot::Split(part, _) = slot {
+            for (i, &k) in order[..len].iter().enumerate() {
+                if let Some(Slot::Split(part, _)) = &decided[k as usize] {
                     let area = part.bounds.surface_area();
                     if widest.is_none_or(|(_, w)| area.total_cmp(&w).is_ge()) {
                         widest = Some((i, area));
@@ -499,15 +545,19 @@ impl Builder {
                 }
             }
             let Some((i, _)) = widest else { break };
-            let Slot::Split(part, children) = slots[i] else {
+            let Some(Slot::Split(part, children)) = decided[order[i] as usize] else {
                 unreachable!()
             };
-            let [l, r] = self.decide_pair(&mut prims[part.first - base..][..part.len], children);
-            slots.copy_within(i + 1..len, i + 2);
-            slots[i] = l;
-            slots[i + 1] = r;
+            let range = &mut prims[part.first - base..][..part.len];
+            self.decide_pair(range, children, &mut decided[used..used + 2]);
+            order.copy_within(i + 1..len, i + 2);
+            order[i] = used as u8;
+            order[i + 1] = used as u8 + 1;
+            used += 2;
             len += 1;
         }
+        let slot = |c: usize| decided[order[c] as usize].as_ref().expect("decided above");
+        let slots: [&Slot; WIDTH] = std::array::from_fn(|c| slot(c.min(len - 1)));
         let slots = &slots[..len];
         let index = out.push_node(slots);
         if prims.len() < 2 * PARALLEL_THRESHOLD {
@@ -529,7 +579,7 @@ impl Builder {
         let mut rest = &mut *prims;
         let pieces: Vec<(&mut [PrimRef], &Slot)> = slots
             .iter()
-            .map(|slot| {
+            .map(|&slot| {
                 let (head, tail) = std::mem::take(&mut rest).split_at_mut(slot.part().len);
                 rest = tail;
                 (head, slot)
@@ -580,7 +630,8 @@ impl Builder {
         for PrimRef(r) in prims {
             let bin = Box4::bins_of(&r.centroid2(), &lo, &scale, last);
             for axis in 0..3 {
-                let bin = bin[axis] as usize;
+                // Within 0..BINS already: the mask only spares a bounds check.
+                let bin = bin[axis] as usize & (BINS - 1);
                 out.counts[axis][bin] += 1;
                 out.bounds[axis][bin].grow(r);
             }
@@ -589,6 +640,8 @@ impl Builder {
 
     /// The cheapest binned SAH split over all three axes (binned in one pass), or None when
     /// a leaf is cheaper and small enough.
+    // Out of line (one call per node): profiles show the sweep and the partition apart.
+    #[inline(never)]
     fn find_split(&self, prims: &[PrimRef], bounds: Aabb, centroid_bounds: Box4) -> Option<Split> {
         let extent: [f32; 4] =
             std::array::from_fn(|k| centroid_bounds.hi[k] - centroid_bounds.lo[k]);
@@ -608,32 +661,41 @@ impl Builder {
         let mut bins = Bins::empty();
         self.bin(prims, lo, scale, nbins, &mut bins);
         let mut best: Option<(f64, usize, usize)> = None;
-        // Each suffix's box and count, from the right; reused across axes.
-        let mut right_box = [Box4::EMPTY; BINS];
-        let mut right_count = [0usize; BINS];
+        // Candidates 1..nbins; the columns are worked out in groups of four lanes.
+        let lanes = nbins.next_multiple_of(4);
         // Axes without a usable extent (none, NaN or infinite) have a zero scale.
         for (axis, _) in scale[..3].iter().enumerate().filter(|(_, &s)| s > 0.0) {
             let (boxes, counts) = (&bins.bounds[axis], &bins.counts[axis]);
+            // Split `s` sends bins below `s` left: each side's box (as extents) and count.
+            let (mut left, mut right) = (Sides::default(), Sides::default());
             let mut acc = Box4::EMPTY;
             let mut count = 0;
             for i in (1..nbins).rev() {
                 acc.grow(&boxes[i]);
-                count += counts[i] as usize;
-                right_box[i] = acc;
-                right_count[i] = count;
+                count += counts[i];
+                right.set(i, &acc, count);
             }
             let mut acc = Box4::EMPTY;
             let mut count = 0;
             for split in 1..nbins {
                 acc.grow(&boxes[split - 1]);
-                count += counts[split - 1] as usize;
-                if count == 0 || right_count[split] == 0 {
+                count += counts[split - 1];
+                left.set(split, &acc, count);
+            }
+            let (left_area, right_area) = (left.areas(lanes), right.areas(lanes));
+            let (left_blocks, right_blocks) =
+                (self.blocks_of(&left, lanes), self.blocks_of(&right, lanes));
+            let mut cost = [0.0; BINS];
+            for k in 0..lanes {
+                cost[k] =
+                    left_area[k] as f64 * left_blocks[k] + right_area[k] as f64 * right_blocks[k];
+            }
+            for (split, &c) in cost.iter().enumerate().take(nbins).skip(1) {
+                if left.count[split] == 0 || right.count[split] == 0 {
                     continue;
                 }
-                let cost = acc.area() * self.blocks(count)
-                    + right_box[split].area() * self.blocks(right_count[split]);
-                if best.is_none_or(|(c, ..)| cost < c) {
-                    best = Some((cost, axis, split));
+                if best.is_none_or(|(b, ..)| c < b) {
+                    best = Some((c, axis, split));
                 }
             }
         }
@@ -671,6 +733,28 @@ impl Builder {
         MAX_LEAF.max(MAX_LEAF_BLOCKS * self.align)
     }
 
+    /// [`Builder::blocks`] of the first `lanes` counts of `sides`.
+    #[inline(always)]
+    fn blocks_of(&self, sides: &Sides, lanes: usize) -> [f64; BINS] {
+        let mut out = [0.0; BINS];
+        let blocks = out[..lanes].iter_mut().zip(&sides.count);
+        match self.align_shift {
+            // Counts stay below 2^31 (MAX_PRIMS): the sum does not wrap, and converting
+            // through i32 is exact and takes one SSE2 instruction per two lanes.
+            Some(shift) => {
+                for (b, &n) in blocks {
+                    *b = ((n + (self.align as u32 - 1)) >> shift) as i32 as f64;
+                }
+            }
+            None => {
+                for (b, &n) in blocks {
+                    *b = self.blocks(n as usize);
+                }
+            }
+        }
+        out
+    }
+
     /// The intersection cost of `n` primitives, in blocks.
     #[inline(always)]
     fn blocks(&self, n: usize) -> f64 {
@@ -684,6 +768,7 @@ impl Builder {
 
     /// In-place partition by `split`; returns the number of primitives going left and the
     /// centroid bounds of both sides.
+    #[inline(never)]
     fn partition(&self, prims: &mut [PrimRef], split: &Split) -> (usize, Box4, Box4) {
         // From both ends, swapping only misplaced pairs: half the moves of a one-sided pass,
         // which count now that the references themselves move.
@@ -718,6 +803,85 @@ impl Builder {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Boxes scattered as a mesh's triangles would be: many, small, some long and thin.
+    fn scattered(n: usize) -> Vec<Aabb> {
+        let mut next = crate::test_rng::uniform(20261202);
+        (0..n)
+            .map(|i| {
+                let c = DVec3::new(next(), next(), next()) * 100.0;
+                let long = if i % 13 == 0 { 20.0 } else { 1.0 };
+                let e = DVec3::new(next() * long, next(), next()) * 0.4;
+                Aabb {
+                    min: c - e,
+                    max: c + e,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn subtrees_built_apart_link_to_their_own_nodes_and_leaves() {
+        // Large enough that the wide nodes near the root build their subtrees as separate
+        // `Out`s and append them, moving their links.
+        let prims = scattered(40_000);
+        for align in [1, 4] {
+            let bvh = Bvh::build_aligned(&prims, align);
+            // From the root, every node is reached once and every primitive once, inside
+            // its leaf's box.
+            let mut reached = vec![0; bvh.nodes.len()];
+            let mut seen = vec![0; prims.len()];
+            let mut stack = vec![0];
+            while let Some(i) = stack.pop() {
+                reached[i] += 1;
+                let n = &bvh.nodes[i];
+                for c in 0..WIDTH {
+                    if n.count[c] > 0 {
+                        assert_eq!(n.index[c] as usize % align, 0);
+                        for slot in n.index[c]..n.index[c] + n.count[c] {
+                            let p = bvh.order[slot as usize] as usize;
+                            seen[p] += 1;
+                            let (lo, hi) = (prims[p].min, prims[p].max);
+                            let b = n.bounds.map(|plane| plane[c] as f64);
+                            assert!(b[0] <= lo.x && b[2] <= lo.y && b[4] <= lo.z);
+                            assert!(b[1] >= hi.x && b[3] >= hi.y && b[5] >= hi.z);
+                        }
+                    } else if n.index[c] != NO_CHILD {
+                        // Depth-first: children follow their parent.
+                        assert!(n.index[c] as usize > i);
+                        stack.push(n.index[c] as usize);
+                    }
+                }
+            }
+            assert!(reached.iter().all(|&r| r == 1));
+            assert!(seen.iter().all(|&s| s == 1));
+        }
+    }
+
+    #[test]
+    fn the_tree_is_the_same_bits_on_one_thread_and_four() {
+        let prims = scattered(40_000);
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let (one, four) = (pool(1), pool(4));
+        for align in [1, 4] {
+            let a = one.install(|| Bvh::build_aligned(&prims, align));
+            let b = four.install(|| Bvh::build_aligned(&prims, align));
+            assert_eq!(a.order, b.order);
+            assert_eq!(a.depth, b.depth);
+            assert_eq!(a.nodes.len(), b.nodes.len());
+            for (m, n) in a.nodes.iter().zip(&b.nodes) {
+                assert_eq!(m.index, n.index);
+                assert_eq!(m.count, n.count);
+                let bits = |n: &Node| n.bounds.map(|p| p.map(f32::to_bits));
+                assert_eq!(bits(m), bits(n));
+            }
+        }
+    }
 
     #[test]
     fn bin_indices_truncate_clamp_and_send_nan_to_bin_zero() {
