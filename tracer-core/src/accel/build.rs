@@ -1,6 +1,7 @@
 //! Building a [`Bvh`]: binned SAH over the primitives' bounds (rounded outward to f32, binned
-//! with f32 SIMD min/max, the references partitioned in place), large subtrees in parallel,
-//! then the binary tree collapsed into `WIDTH`-wide nodes with outward-rounded f32 boxes.
+//! with f32 SIMD min/max, the references partitioned in place), collapsed into `WIDTH`-wide
+//! nodes with outward-rounded f32 boxes as it is built (no binary tree is kept), large
+//! subtrees in parallel.
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -10,6 +11,7 @@ use super::memory::with_capacity_huge;
 use crate::geometry::Aabb;
 
 const BINS: usize = 16;
+const _: () = assert!(BINS.is_power_of_two());
 const MAX_LEAF: usize = 4;
 /// With primitives in blocks, a leaf may hold this many blocks when the SAH finds that
 /// cheaper than splitting: a second block in a leaf costs less than the node visit a split
@@ -20,38 +22,118 @@ const INTERSECT_COST: f64 = 1.0;
 /// Subtrees at least this large are built on another rayon task.
 const PARALLEL_THRESHOLD: usize = 4096;
 
-/// The binary tree the builder makes before it is packed into [`Node`]s.
-enum Tree {
-    Leaf {
-        bounds: Aabb,
-        first: u32,
-        count: u32,
-    },
-    Interior {
-        bounds: Aabb,
-        children: Box<[Tree; 2]>,
-    },
+/// A node of the binary SAH tree: a range of the references with its bounds.
+#[derive(Clone, Copy)]
+struct Part {
+    /// Where the range starts in the whole reference array.
+    first: usize,
+    len: usize,
+    /// Depth in the binary tree (the root's is 0).
+    depth: usize,
+    bounds: Aabb,
+    centroids: Box4,
 }
 
-impl Tree {
-    fn bounds(&self) -> Aabb {
+/// A binary node once decided: a leaf, or split with its references partitioned between the
+/// two children.
+// Slots live in a fixed array on the stack, written once each; boxing the split variant
+// would allocate per binary node, which is what this builder stopped doing.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Copy)]
+enum Slot {
+    Leaf(Part),
+    Split(Part, [Part; 2]),
+}
+
+impl Slot {
+    fn part(&self) -> &Part {
         match self {
-            Tree::Leaf { bounds, .. } | Tree::Interior { bounds, .. } => *bounds,
+            Slot::Leaf(p) | Slot::Split(p, _) => p,
+        }
+    }
+}
+
+/// Wide nodes in depth-first order, the leaves' primitive order (padded per leaf) and the
+/// binary tree's depth, of the whole tree or of a subtree built on its own task; in the
+/// latter, child indices count from the subtree's first node and leaf slots from its first
+/// slot until [`Out::append`] moves them.
+struct Out {
+    nodes: Vec<Node>,
+    order: Vec<u32>,
+    depth: usize,
+}
+
+impl Out {
+    fn new() -> Out {
+        Out {
+            nodes: Vec::new(),
+            order: Vec::new(),
+            depth: 0,
         }
     }
 
-    fn depth(&self) -> usize {
-        match self {
-            Tree::Leaf { .. } => 1,
-            Tree::Interior { children, .. } => 1 + children[0].depth().max(children[1].depth()),
+    /// Appends a wide node with `slots`' boxes (links still unset); returns its index.
+    fn push_node(&mut self, slots: &[&Slot]) -> usize {
+        let mut node = Node {
+            bounds: [
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+                [f32::INFINITY; WIDTH],
+                [f32::NEG_INFINITY; WIDTH],
+            ],
+            index: [NO_CHILD; WIDTH],
+            count: [0; WIDTH],
+        };
+        for (c, slot) in slots.iter().enumerate() {
+            let b = to_f32_box(slot.part().bounds);
+            for a in 0..3 {
+                node.bounds[2 * a][c] = b[a];
+                node.bounds[2 * a + 1][c] = b[a + 3];
+            }
         }
+        self.nodes.push(node);
+        self.nodes.len() - 1
+    }
+
+    /// Makes slot `c` of node `index` the leaf `part` (its references `prims`): its
+    /// primitives join the order, the leaf starting on a multiple of `align`.
+    fn leaf(&mut self, index: usize, c: usize, part: &Part, prims: &[PrimRef], align: usize) {
+        let start = self.order.len();
+        self.order.extend(prims.iter().map(PrimRef::id));
+        self.order
+            .resize(self.order.len().next_multiple_of(align), PADDING);
+        self.nodes[index].index[c] = start as u32;
+        self.nodes[index].count[c] = part.len as u32;
+        self.depth = self.depth.max(part.depth + 1);
+    }
+
+    /// Appends a subtree built on its own, its links moved to their new places; returns the
+    /// index of its first node.
+    fn append(&mut self, sub: Out) -> u32 {
+        let (node_base, slot_base) = (self.nodes.len() as u32, self.order.len() as u32);
+        self.nodes.extend(sub.nodes.iter().map(|n| {
+            let mut n = *n;
+            for c in 0..WIDTH {
+                if n.count[c] > 0 {
+                    n.index[c] += slot_base;
+                } else if n.index[c] != NO_CHILD {
+                    n.index[c] += node_base;
+                }
+            }
+            n
+        }));
+        self.order.extend_from_slice(&sub.order);
+        self.depth = self.depth.max(sub.depth);
+        node_base
     }
 }
 
 impl Bvh {
-    /// Builds with the binned surface-area heuristic (16 bins on each axis), large subtrees
-    /// in parallel, then collapses the binary tree into `WIDTH`-wide nodes. The result does not
-    /// depend on the thread count.
+    /// Builds with the binned surface-area heuristic (16 bins on each axis), the binary tree
+    /// collapsed into `WIDTH`-wide nodes as it is built, large subtrees in parallel. The
+    /// result does not depend on the thread count.
     pub fn build(bounds: &[Aabb]) -> Bvh {
         Bvh::build_aligned(bounds, 1)
     }
@@ -91,58 +173,38 @@ impl Bvh {
             align,
             align_shift: align.is_power_of_two().then(|| align.trailing_zeros()),
         };
-        let mut tree = builder.build(&mut refs, 0, 0, root_bounds, root_centroids);
-        let mut order = Vec::with_capacity(refs.len());
-        refs.par_iter()
-            .map(PrimRef::id)
-            .collect_into_vec(&mut order);
-        drop(refs);
-        if align > 1 {
-            let mut aligned = Vec::with_capacity(order.len() + order.len() / 2);
-            align_leaves(&mut tree, &order, align, &mut aligned);
-            order = aligned;
-        }
-        let mut nodes = with_capacity_huge(bounds.len() / 4 + 1);
-        let root_bounds = tree.bounds();
-        let depth = tree.depth();
-        match &tree {
-            Tree::Interior { children, .. } => {
-                pack(children, &mut nodes);
-            }
-            leaf @ Tree::Leaf { .. } => {
+        let root = Part {
+            first: 0,
+            len: refs.len(),
+            depth: 0,
+            bounds: root_bounds,
+            centroids: root_centroids,
+        };
+        let padded = if align > 1 { refs.len() / 2 } else { 0 };
+        let mut out = Out {
+            nodes: with_capacity_huge(bounds.len() / 4 + 1),
+            order: Vec::with_capacity(refs.len() + padded),
+            depth: 0,
+        };
+        match builder.decide(&mut refs, root) {
+            Slot::Split(_, children) => builder.wide(&mut refs, 0, children, &mut out),
+            leaf @ Slot::Leaf(part) => {
                 // A lone leaf: one node with one used slot.
-                pack_node(&[leaf], &mut nodes);
+                let index = out.push_node(&[&leaf]);
+                out.leaf(index, 0, &part, &refs, align);
             }
         }
         Bvh {
-            nodes,
-            order,
+            nodes: out.nodes,
+            order: out.order,
             bounds: Some(root_bounds),
-            depth,
+            depth: out.depth,
         }
     }
 }
 
 /// Marks a padding slot in the `order` of [`Bvh::build_aligned`].
 pub const PADDING: u32 = u32::MAX;
-
-/// Copies the leaves' primitives from `order` to `out` in leaf order, each leaf starting on a
-/// multiple of `align` (gaps filled with [`PADDING`]), and points the leaves at their new slots.
-fn align_leaves(tree: &mut Tree, order: &[u32], align: usize, out: &mut Vec<u32>) {
-    match tree {
-        Tree::Leaf { first, count, .. } => {
-            let start = out.len();
-            out.extend_from_slice(&order[*first as usize..(*first + *count) as usize]);
-            out.resize(out.len().next_multiple_of(align), PADDING);
-            *first = start as u32;
-        }
-        Tree::Interior { children, .. } => {
-            for child in children.iter_mut() {
-                align_leaves(child, order, align, out);
-            }
-        }
-    }
-}
 
 /// f32 box rounded outward, so it always contains the f64 box.
 pub(super) fn to_f32_box(b: Aabb) -> [f32; 6] {
@@ -165,66 +227,6 @@ pub(super) fn to_f32_box(b: Aabb) -> [f32; 6] {
         round_up(b.max.y),
         round_up(b.max.z),
     ]
-}
-
-/// Appends the wide node that replaces the binary node with `children`: the binary tree is
-/// opened below it, largest interior child first, until it has `WIDTH` children. Subtrees follow
-/// depth first; returns the node's index.
-fn pack(children: &[Tree; 2], nodes: &mut Vec<Node>) -> u32 {
-    let mut slots: Vec<&Tree> = Vec::with_capacity(WIDTH);
-    slots.extend([&children[0], &children[1]]);
-    while slots.len() < WIDTH {
-        let widest = slots
-            .iter()
-            .enumerate()
-            .filter(|(_, t)| matches!(t, Tree::Interior { .. }))
-            .max_by(|(_, a), (_, b)| {
-                a.bounds()
-                    .surface_area()
-                    .total_cmp(&b.bounds().surface_area())
-            })
-            .map(|(i, _)| i);
-        let Some(i) = widest else { break };
-        let Tree::Interior { children, .. } = slots[i] else {
-            unreachable!()
-        };
-        slots[i] = &children[0];
-        slots.insert(i + 1, &children[1]);
-    }
-    pack_node(&slots, nodes)
-}
-
-fn pack_node(slots: &[&Tree], nodes: &mut Vec<Node>) -> u32 {
-    let index = nodes.len();
-    let mut node = Node {
-        bounds: [
-            [f32::INFINITY; WIDTH],
-            [f32::NEG_INFINITY; WIDTH],
-            [f32::INFINITY; WIDTH],
-            [f32::NEG_INFINITY; WIDTH],
-            [f32::INFINITY; WIDTH],
-            [f32::NEG_INFINITY; WIDTH],
-        ],
-        index: [NO_CHILD; WIDTH],
-        count: [0; WIDTH],
-    };
-    for (c, child) in slots.iter().enumerate() {
-        let b = to_f32_box(child.bounds());
-        for a in 0..3 {
-            node.bounds[2 * a][c] = b[a];
-            node.bounds[2 * a + 1][c] = b[a + 3];
-        }
-    }
-    nodes.push(node);
-    for (c, child) in slots.iter().enumerate() {
-        let (child_index, count) = match child {
-            Tree::Leaf { first, count, .. } => (*first, *count),
-            Tree::Interior { children, .. } => (pack(children, nodes), 0),
-        };
-        nodes[index].index[c] = child_index;
-        nodes[index].count[c] = count;
-    }
-    index as u32
 }
 
 struct Builder {
@@ -312,9 +314,27 @@ impl Box4 {
     /// they are worked out, so binning and partitioning agree.
     /// The fourth lane is 0: in a [`PrimRef`] it holds an index, and differences of those
     /// bit patterns would be subnormal (a slow path on the CPU).
+    #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
     fn centroid2(&self) -> [f32; 4] {
         std::array::from_fn(|k| if k < 3 { self.lo[k] + self.hi[k] } else { 0.0 })
+    }
+
+    /// The portable version's sums in one SSE add, the fourth lane masked to +0 (built lane
+    /// by lane, the compiler shuffled scalars into place for every reference).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn centroid2(&self) -> [f32; 4] {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE2 is part of the x86_64 baseline; a Box4's halves are 16-byte aligned
+        // (the struct is 32-byte aligned, `hi` at offset 16).
+        unsafe {
+            let keep = _mm_castsi128_ps(_mm_set_epi32(0, -1, -1, -1));
+            let sum = _mm_add_ps(_mm_load_ps(self.lo.as_ptr()), _mm_load_ps(self.hi.as_ptr()));
+            let mut out = [0.0; 4];
+            _mm_storeu_ps(out.as_mut_ptr(), _mm_and_ps(sum, keep));
+            out
+        }
     }
 
     /// The bins of a doubled centroid on each axis (the fourth lane unused): truncated and
@@ -375,22 +395,44 @@ impl Box4 {
         self.grow(&Box4 { lo: *p, hi: *p });
     }
 
-    /// Surface area of a non-empty box (the sweeps only measure boxes holding primitives).
-    #[inline(always)]
-    fn area(&self) -> f64 {
-        let (x, y, z) = (
-            self.hi[0] - self.lo[0],
-            self.hi[1] - self.lo[1],
-            self.hi[2] - self.lo[2],
-        );
-        (2.0 * (x * y + y * z + z * x)) as f64
-    }
-
     fn aabb(&self) -> Aabb {
         Aabb {
             min: DVec3::new(self.lo[0] as f64, self.lo[1] as f64, self.lo[2] as f64),
             max: DVec3::new(self.hi[0] as f64, self.hi[1] as f64, self.hi[2] as f64),
         }
+    }
+}
+
+/// One side of every candidate split of an axis, in columns: the extents of its box and its
+/// number of primitives (entries outside the candidates are zero, or unused).
+#[derive(Default)]
+struct Sides {
+    x: [f32; BINS],
+    y: [f32; BINS],
+    z: [f32; BINS],
+    count: [u32; BINS],
+}
+
+impl Sides {
+    #[inline(always)]
+    fn set(&mut self, split: usize, b: &Box4, count: u32) {
+        self.x[split] = b.hi[0] - b.lo[0];
+        self.y[split] = b.hi[1] - b.lo[1];
+        self.z[split] = b.hi[2] - b.lo[2];
+        self.count[split] = count;
+    }
+
+    /// The surface areas of the first `lanes` entries (only those holding primitives are
+    /// read). Lane by lane the same f32 operations in the same order as one box at a time,
+    /// so the costs, and the tree, do not change; in columns they compile to SIMD.
+    #[inline(always)]
+    fn areas(&self, lanes: usize) -> [f32; BINS] {
+        let mut out = [0.0; BINS];
+        let extents = self.x.iter().zip(&self.y).zip(&self.z);
+        for (a, ((&x, &y), &z)) in out[..lanes].iter_mut().zip(extents) {
+            *a = 2.0 * (x * y + y * z + z * x);
+        }
+        out
     }
 }
 
@@ -425,50 +467,148 @@ impl Bins {
 const PARALLEL_BINNING: usize = 16 * 1024;
 
 impl Builder {
-    /// `bounds` and `centroid_bounds` are those of `prims`, found by the caller.
-    fn build(
-        &self,
-        prims: &mut [PrimRef],
-        first: usize,
-        depth: usize,
-        bounds: Aabb,
-        centroid_bounds: Box4,
-    ) -> Tree {
-        let leaf = Tree::Leaf {
-            bounds,
-            first: first as u32,
-            count: prims.len() as u32,
-        };
+    /// Decides the binary node `part`, whose references are `prims`: a leaf, or split with
+    /// `prims` partitioned between its children.
+    fn decide(&self, prims: &mut [PrimRef], part: Part) -> Slot {
         // The depth cap keeps traversal's fixed stack from overflowing on adversarial input.
-        if prims.len() <= 1 || depth + 2 >= MAX_DEPTH {
-            return leaf;
+        if prims.len() <= 1 || part.depth + 2 >= MAX_DEPTH {
+            return Slot::Leaf(part);
         }
         // One block is a leaf whatever the split: a split costs a traversal step more.
         if prims.len() <= MAX_LEAF.min(self.align) {
-            return leaf;
+            return Slot::Leaf(part);
         }
-        let Some(split) = self.find_split(prims, bounds, centroid_bounds) else {
-            return leaf;
+        let Some(split) = self.find_split(prims, part.bounds, part.centroids) else {
+            return Slot::Leaf(part);
         };
         let (mid, left_centroids, right_centroids) = self.partition(prims, &split);
         if mid == 0 || mid == prims.len() {
-            return leaf;
+            return Slot::Leaf(part);
         }
-        let (left, right) = prims.split_at_mut(mid);
-        let (l, r) = if prims_len(left, right) >= PARALLEL_THRESHOLD {
-            rayon::join(
-                || self.build(left, first, depth + 1, split.left, left_centroids),
-                || self.build(right, first + mid, depth + 1, split.right, right_centroids),
-            )
-        } else {
-            (
-                self.build(left, first, depth + 1, split.left, left_centroids),
-                self.build(right, first + mid, depth + 1, split.right, right_centroids),
-            )
-        };
-        Tree::Interior {
+        let child = |first, len, bounds, centroids| Part {
+            first,
+            len,
+            depth: part.depth + 1,
             bounds,
-            children: Box::new([l, r]),
+            centroids,
+        };
+        Slot::Split(
+            part,
+            [
+                child(part.first, mid, split.left, left_centroids),
+                child(
+                    part.first + mid,
+                    prims.len() - mid,
+                    split.right,
+                    right_centroids,
+                ),
+            ],
+        )
+    }
+
+    /// Decides both children of a split node into `out[0]` and `out[1]`; `prims` holds
+    /// exactly their references.
+    fn decide_pair(&self, prims: &mut [PrimRef], children: [Part; 2], out: &mut [Option<Slot>]) {
+        let (left, right) = prims.split_at_mut(children[0].len);
+        let (l, r) = out.split_at_mut(1);
+        if left.len().min(right.len()) >= PARALLEL_THRESHOLD {
+            rayon::join(
+                || l[0] = Some(self.decide(left, children[0])),
+                || r[0] = Some(self.decide(right, children[1])),
+            );
+        } else {
+            l[0] = Some(self.decide(left, children[0]));
+            r[0] = Some(self.decide(right, children[1]));
+        }
+    }
+
+    /// Appends to `out` the wide node that replaces a split binary node, then its subtrees
+    /// depth first. `prims` are the node's references, starting at `base` in the whole array;
+    /// `children` its binary children. The binary tree is opened below the node, its widest
+    /// split slot first (by surface area, the last of equals), until it has `WIDTH` slots.
+    fn wide(&self, prims: &mut [PrimRef], base: usize, children: [Part; 2], out: &mut Out) {
+        // The decided binary nodes, written once; the slots are indices into them, so that
+        // opening one moves bytes instead of 400-byte slots.
+        let mut decided: [Option<Slot>; 2 * WIDTH - 2] = [None; 2 * WIDTH - 2];
+        let mut order = [0u8; WIDTH];
+        self.decide_pair(prims, children, &mut decided[..2]);
+        order[1] = 1;
+        let (mut len, mut used) = (2, 2);
+        while len < WIDTH {
+            let mut widest: Option<(usize, f64)> = None;
+            for (i, &k) in order[..len].iter().enumerate() {
+                if let Some(Slot::Split(part, _)) = &decided[k as usize] {
+                    let area = part.bounds.surface_area();
+                    if widest.is_none_or(|(_, w)| area.total_cmp(&w).is_ge()) {
+                        widest = Some((i, area));
+                    }
+                }
+            }
+            let Some((i, _)) = widest else { break };
+            let Some(Slot::Split(part, children)) = decided[order[i] as usize] else {
+                unreachable!()
+            };
+            let range = &mut prims[part.first - base..][..part.len];
+            self.decide_pair(range, children, &mut decided[used..used + 2]);
+            order.copy_within(i + 1..len, i + 2);
+            order[i] = used as u8;
+            order[i + 1] = used as u8 + 1;
+            used += 2;
+            len += 1;
+        }
+        let slot = |c: usize| decided[order[c] as usize].as_ref().expect("decided above");
+        let slots: [&Slot; WIDTH] = std::array::from_fn(|c| slot(c.min(len - 1)));
+        let slots = &slots[..len];
+        let index = out.push_node(slots);
+        if prims.len() < 2 * PARALLEL_THRESHOLD {
+            for (c, slot) in slots.iter().enumerate() {
+                let range = &mut prims[slot.part().first - base..][..slot.part().len];
+                match slot {
+                    Slot::Leaf(part) => out.leaf(index, c, part, range, self.align),
+                    Slot::Split(part, children) => {
+                        let child = out.nodes.len() as u32;
+                        self.wide(range, part.first, *children, out);
+                        out.nodes[index].index[c] = child;
+                    }
+                }
+            }
+            return;
+        }
+        // Large: the split slots' subtrees are built on their own tasks, then appended in
+        // slot order, so the layout is the same as built in one.
+        let mut rest = &mut *prims;
+        let pieces: Vec<(&mut [PrimRef], &Slot)> = slots
+            .iter()
+            .map(|&slot| {
+                let (head, tail) = std::mem::take(&mut rest).split_at_mut(slot.part().len);
+                rest = tail;
+                (head, slot)
+            })
+            .collect();
+        let subtrees: Vec<Option<Out>> = pieces
+            .into_par_iter()
+            .map(|(range, slot)| match slot {
+                Slot::Leaf(_) => None,
+                Slot::Split(part, children) => {
+                    let mut sub = Out::new();
+                    self.wide(range, part.first, *children, &mut sub);
+                    Some(sub)
+                }
+            })
+            .collect();
+        for (c, (slot, sub)) in slots.iter().zip(subtrees).enumerate() {
+            match slot {
+                Slot::Leaf(part) => out.leaf(
+                    index,
+                    c,
+                    part,
+                    &prims[part.first - base..][..part.len],
+                    self.align,
+                ),
+                Slot::Split(..) => {
+                    out.nodes[index].index[c] = out.append(sub.expect("built above"));
+                }
+            }
         }
     }
 
@@ -490,7 +630,8 @@ impl Builder {
         for PrimRef(r) in prims {
             let bin = Box4::bins_of(&r.centroid2(), &lo, &scale, last);
             for axis in 0..3 {
-                let bin = bin[axis] as usize;
+                // Within 0..BINS already: the mask only spares a bounds check.
+                let bin = bin[axis] as usize & (BINS - 1);
                 out.counts[axis][bin] += 1;
                 out.bounds[axis][bin].grow(r);
             }
@@ -499,6 +640,8 @@ impl Builder {
 
     /// The cheapest binned SAH split over all three axes (binned in one pass), or None when
     /// a leaf is cheaper and small enough.
+    // Out of line (one call per node): profiles show the sweep and the partition apart.
+    #[inline(never)]
     fn find_split(&self, prims: &[PrimRef], bounds: Aabb, centroid_bounds: Box4) -> Option<Split> {
         let extent: [f32; 4] =
             std::array::from_fn(|k| centroid_bounds.hi[k] - centroid_bounds.lo[k]);
@@ -518,32 +661,41 @@ impl Builder {
         let mut bins = Bins::empty();
         self.bin(prims, lo, scale, nbins, &mut bins);
         let mut best: Option<(f64, usize, usize)> = None;
-        // Each suffix's box and count, from the right; reused across axes.
-        let mut right_box = [Box4::EMPTY; BINS];
-        let mut right_count = [0usize; BINS];
+        // Candidates 1..nbins; the columns are worked out in groups of four lanes.
+        let lanes = nbins.next_multiple_of(4);
         // Axes without a usable extent (none, NaN or infinite) have a zero scale.
         for (axis, _) in scale[..3].iter().enumerate().filter(|(_, &s)| s > 0.0) {
             let (boxes, counts) = (&bins.bounds[axis], &bins.counts[axis]);
+            // Split `s` sends bins below `s` left: each side's box (as extents) and count.
+            let (mut left, mut right) = (Sides::default(), Sides::default());
             let mut acc = Box4::EMPTY;
             let mut count = 0;
             for i in (1..nbins).rev() {
                 acc.grow(&boxes[i]);
-                count += counts[i] as usize;
-                right_box[i] = acc;
-                right_count[i] = count;
+                count += counts[i];
+                right.set(i, &acc, count);
             }
             let mut acc = Box4::EMPTY;
             let mut count = 0;
             for split in 1..nbins {
                 acc.grow(&boxes[split - 1]);
-                count += counts[split - 1] as usize;
-                if count == 0 || right_count[split] == 0 {
+                count += counts[split - 1];
+                left.set(split, &acc, count);
+            }
+            let (left_area, right_area) = (left.areas(lanes), right.areas(lanes));
+            let (left_blocks, right_blocks) =
+                (self.blocks_of(&left, lanes), self.blocks_of(&right, lanes));
+            let mut cost = [0.0; BINS];
+            for k in 0..lanes {
+                cost[k] =
+                    left_area[k] as f64 * left_blocks[k] + right_area[k] as f64 * right_blocks[k];
+            }
+            for (split, &c) in cost.iter().enumerate().take(nbins).skip(1) {
+                if left.count[split] == 0 || right.count[split] == 0 {
                     continue;
                 }
-                let cost = acc.area() * self.blocks(count)
-                    + right_box[split].area() * self.blocks(right_count[split]);
-                if best.is_none_or(|(c, ..)| cost < c) {
-                    best = Some((cost, axis, split));
+                if best.is_none_or(|(b, ..)| c < b) {
+                    best = Some((c, axis, split));
                 }
             }
         }
@@ -581,6 +733,28 @@ impl Builder {
         MAX_LEAF.max(MAX_LEAF_BLOCKS * self.align)
     }
 
+    /// [`Builder::blocks`] of the first `lanes` counts of `sides`.
+    #[inline(always)]
+    fn blocks_of(&self, sides: &Sides, lanes: usize) -> [f64; BINS] {
+        let mut out = [0.0; BINS];
+        let blocks = out[..lanes].iter_mut().zip(&sides.count);
+        match self.align_shift {
+            // Counts stay below 2^31 (MAX_PRIMS): the sum does not wrap, and converting
+            // through i32 is exact and takes one SSE2 instruction per two lanes.
+            Some(shift) => {
+                for (b, &n) in blocks {
+                    *b = ((n + (self.align as u32 - 1)) >> shift) as i32 as f64;
+                }
+            }
+            None => {
+                for (b, &n) in blocks {
+                    *b = self.blocks(n as usize);
+                }
+            }
+        }
+        out
+    }
+
     /// The intersection cost of `n` primitives, in blocks.
     #[inline(always)]
     fn blocks(&self, n: usize) -> f64 {
@@ -594,6 +768,7 @@ impl Builder {
 
     /// In-place partition by `split`; returns the number of primitives going left and the
     /// centroid bounds of both sides.
+    #[inline(never)]
     fn partition(&self, prims: &mut [PrimRef], split: &Split) -> (usize, Box4, Box4) {
         // From both ends, swapping only misplaced pairs: half the moves of a one-sided pass,
         // which count now that the references themselves move.
@@ -625,13 +800,88 @@ impl Builder {
     }
 }
 
-fn prims_len(a: &[PrimRef], b: &[PrimRef]) -> usize {
-    a.len().min(b.len())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Boxes scattered as a mesh's triangles would be: many, small, some long and thin.
+    fn scattered(n: usize) -> Vec<Aabb> {
+        let mut next = crate::test_rng::uniform(20261202);
+        (0..n)
+            .map(|i| {
+                let c = DVec3::new(next(), next(), next()) * 100.0;
+                let long = if i % 13 == 0 { 20.0 } else { 1.0 };
+                let e = DVec3::new(next() * long, next(), next()) * 0.4;
+                Aabb {
+                    min: c - e,
+                    max: c + e,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn subtrees_built_apart_link_to_their_own_nodes_and_leaves() {
+        // Large enough that the wide nodes near the root build their subtrees as separate
+        // `Out`s and append them, moving their links.
+        let prims = scattered(40_000);
+        for align in [1, 4] {
+            let bvh = Bvh::build_aligned(&prims, align);
+            // From the root, every node is reached once and every primitive once, inside
+            // its leaf's box.
+            let mut reached = vec![0; bvh.nodes.len()];
+            let mut seen = vec![0; prims.len()];
+            let mut stack = vec![0];
+            while let Some(i) = stack.pop() {
+                reached[i] += 1;
+                let n = &bvh.nodes[i];
+                for c in 0..WIDTH {
+                    if n.count[c] > 0 {
+                        assert_eq!(n.index[c] as usize % align, 0);
+                        for slot in n.index[c]..n.index[c] + n.count[c] {
+                            let p = bvh.order[slot as usize] as usize;
+                            seen[p] += 1;
+                            let (lo, hi) = (prims[p].min, prims[p].max);
+                            let b = n.bounds.map(|plane| plane[c] as f64);
+                            assert!(b[0] <= lo.x && b[2] <= lo.y && b[4] <= lo.z);
+                            assert!(b[1] >= hi.x && b[3] >= hi.y && b[5] >= hi.z);
+                        }
+                    } else if n.index[c] != NO_CHILD {
+                        // Depth-first: children follow their parent.
+                        assert!(n.index[c] as usize > i);
+                        stack.push(n.index[c] as usize);
+                    }
+                }
+            }
+            assert!(reached.iter().all(|&r| r == 1));
+            assert!(seen.iter().all(|&s| s == 1));
+        }
+    }
+
+    #[test]
+    fn the_tree_is_the_same_bits_on_one_thread_and_four() {
+        let prims = scattered(40_000);
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let (one, four) = (pool(1), pool(4));
+        for align in [1, 4] {
+            let a = one.install(|| Bvh::build_aligned(&prims, align));
+            let b = four.install(|| Bvh::build_aligned(&prims, align));
+            assert_eq!(a.order, b.order);
+            assert_eq!(a.depth, b.depth);
+            assert_eq!(a.nodes.len(), b.nodes.len());
+            for (m, n) in a.nodes.iter().zip(&b.nodes) {
+                assert_eq!(m.index, n.index);
+                assert_eq!(m.count, n.count);
+                let bits = |n: &Node| n.bounds.map(|p| p.map(f32::to_bits));
+                assert_eq!(bits(m), bits(n));
+            }
+        }
+    }
 
     #[test]
     fn bin_indices_truncate_clamp_and_send_nan_to_bin_zero() {
