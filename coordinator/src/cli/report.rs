@@ -178,7 +178,9 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
                     tile_size: args.tile_size,
                     adaptive: Some(protocol::AdaptiveSpec {
                         noise_threshold: threshold,
-                        spp_min: 2,
+                        // The first pass straight to 8 spp: two passes fewer than from 2,
+                        // and the plan decides nothing before 8 anyway (it only doubles).
+                        spp_min: 8,
                         spp_max: 4 * args.spp.iter().max().copied().unwrap_or(1).max(2),
                         time_limit_s: Some(seconds),
                     }),
@@ -220,7 +222,7 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
              N in-process workers sharing {threads} render thread(s), {} px tiles): seconds run from \
              submitting the scene and its assets over HTTP to holding the finished PNG. \
              \"in-process\" is the tracer alone on the same threads. \"adaptive X\" rows are \
-             progressive jobs (noise threshold X, 2..4x the largest spp) whose time limit is the \
+             progressive jobs (noise threshold X, 8..4x the largest spp) whose time limit is the \
              wall time of the uniform run of the same position: their spp is the mean. Every \
              image, the reference included, is compared as the 8-bit PNG a user gets.",
             args.tile_size
