@@ -224,25 +224,31 @@ async fn download(
     output: &Path,
 ) -> Result<Vec<PathBuf>, String> {
     let format = tracer_core::cli_args::check_output(output).map_err(|e| e.to_string())?;
-    let Some(range) = job.spec.frames else {
-        let bytes = client
-            .image_in(job.id, None, format)
-            .await
-            .map_err(|e| e.to_string())?;
-        write_image(output, &bytes)?;
-        return Ok(vec![output.to_path_buf()]);
-    };
     let mut written = Vec::new();
-    for frame in range.frames() {
+    for (frame, path) in output_files(job, output) {
         let bytes = client
-            .image_in(job.id, Some(frame), format)
+            .image_in(job.id, frame, format)
             .await
             .map_err(|e| e.to_string())?;
-        let path = tracer_core::settings::numbered_path(output, frame);
         write_image(&path, &bytes)?;
         written.push(path);
     }
     Ok(written)
+}
+
+/// Where a finished job's images go for `-o output`: the job's one image to `output`, or each
+/// frame of a frame-range job to `output` numbered, with the frame to ask for.
+fn output_files(job: &protocol::JobInfo, output: &Path) -> Vec<(Option<u32>, PathBuf)> {
+    match job.spec.frames {
+        None => vec![(None, output.to_path_buf())],
+        Some(range) => range
+            .frames()
+            .map(|frame| {
+                let path = tracer_core::settings::numbered_path(output, frame);
+                (Some(frame), path)
+            })
+            .collect(),
+    }
 }
 
 /// Names what [`download`] wrote, briefly.

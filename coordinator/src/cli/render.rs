@@ -1,18 +1,27 @@
 //! `coordinator render`: the one-command farm. An [`EmbeddedFarm`], the scene submitted over
-//! HTTP like any other job, a progress bar, the PNG written, everything torn down.
+//! HTTP like any other job and rendered by workers that lease and complete its tiles over
+//! HTTP, a progress bar, the PNG written, everything torn down.
+//!
+//! The farm runs in this process, so the command learns of the job's progress from the farm's
+//! change notifications and takes the finished image from it directly: polling the job and
+//! downloading the image over HTTP cost up to a poll interval and a round trip with the
+//! image's bytes, all after the render.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::{Duration, Instant};
+use std::sync::Arc;
+use std::time::Instant;
 
 use clap::Args;
-use protocol::JobState;
+use protocol::{JobInfo, JobState};
+use tokio::sync::broadcast::error::RecvError;
 use tracer_core::cli_args::OutputArgs;
 use worker::available_cores;
 
-use super::submit::{collect_submission, describe, wait_for};
+use super::submit::{collect_submission, describe, progress_bar, show_progress};
 use super::{Failure, SettingsArgs};
 use crate::embedded::{local_tile_size, scratch_bytes, EmbeddedFarm};
+use crate::farm::Farm;
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -84,6 +93,8 @@ async fn submit_and_wait(
 ) -> Result<(), Failure> {
     let client = farm.client();
     let (workers, threads) = farm.size();
+    // Subscribed before the job exists, so no change to it is missed.
+    let mut events = farm.farm().subscribe();
     let job = client.submit(submission).await.map_err(describe)?;
     let spp = match &job.spec.adaptive {
         Some(a) => format!("{}..{} spp progressive", a.spp_min, a.spp_max),
@@ -94,8 +105,8 @@ async fn submit_and_wait(
         job.scene_file, job.spec.render.width, job.spec.render.height, job.tiles_total
     );
     let finished = tokio::select! {
-        done = wait_for(client, job.id, Duration::from_millis(20), quiet) => {
-            done.map_err(describe)?
+        done = wait_in_process(farm.farm(), &mut events, job.id, quiet) => {
+            done.map_err(Failure::failed)?
         }
         _ = super::stop_signal() => {
             let _ = client.cancel(job.id).await;
@@ -104,7 +115,13 @@ async fn submit_and_wait(
     };
     match finished.state {
         JobState::Done => {
-            let written = super::download(client, &finished, output).await?;
+            let written = {
+                let (farm, job, output) =
+                    (farm.farm().clone(), finished.clone(), output.to_owned());
+                tokio::task::spawn_blocking(move || write_output(&farm, &job, &output))
+                    .await
+                    .map_err(|e| e.to_string())??
+            };
             eprintln!(
                 "wrote {} in {:.2}s: {}",
                 super::describe_written(&written),
@@ -119,6 +136,45 @@ async fn submit_and_wait(
         ))),
         other => Err(Failure::failed(format!("the job ended {}", other.as_str()))),
     }
+}
+
+/// Waits for job `id` to finish, from the farm's change notifications (`events`, subscribed
+/// before the job was submitted), with a progress bar. Returns the finished job.
+async fn wait_in_process(
+    farm: &Farm,
+    events: &mut tokio::sync::broadcast::Receiver<crate::farm::FarmEvent>,
+    id: u64,
+    quiet: bool,
+) -> Result<JobInfo, String> {
+    let bar = progress_bar(quiet);
+    loop {
+        let info = farm.job(id).map_err(|e| e.to_string())?;
+        show_progress(&bar, &info);
+        if info.state.is_finished() {
+            bar.finish_and_clear();
+            return Ok(info);
+        }
+        // Any change may be this job's: the job is read again. Falling behind only means
+        // some changes were merged into the next read.
+        match events.recv().await {
+            Ok(_) | Err(RecvError::Lagged(_)) => {}
+            Err(RecvError::Closed) => return Err("the farm stopped".into()),
+        }
+    }
+}
+
+/// Writes a finished job's images (see [`super::download`]) taken from the farm itself.
+fn write_output(farm: &Arc<Farm>, job: &JobInfo, output: &Path) -> Result<Vec<PathBuf>, String> {
+    let format = tracer_core::cli_args::check_output(output).map_err(|e| e.to_string())?;
+    let mut written = Vec::new();
+    for (frame, path) in super::output_files(job, output) {
+        let bytes = farm
+            .image_in(job.id, frame, format)
+            .map_err(|e| e.to_string())?;
+        super::write_image(&path, &bytes)?;
+        written.push(path);
+    }
+    Ok(written)
 }
 
 /// The final line's account of the samples: mean spp, and for a progressive job its passes

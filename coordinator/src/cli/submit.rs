@@ -81,14 +81,8 @@ pub fn describe(e: ClientError) -> Failure {
     }
 }
 
-/// Polls a job until it finishes, drawing a progress bar on stderr (hidden when it is not a
-/// terminal). Returns the finished job.
-pub async fn wait_for(
-    client: &Client,
-    id: u64,
-    every: Duration,
-    quiet: bool,
-) -> Result<JobInfo, ClientError> {
+/// A job's progress bar on stderr (hidden when it is not a terminal, or when `quiet`).
+pub fn progress_bar(quiet: bool) -> ProgressBar {
     let bar = if quiet {
         ProgressBar::hidden()
     } else {
@@ -100,6 +94,28 @@ pub async fn wait_for(
         )
         .expect("a valid template"),
     );
+    bar
+}
+
+/// Shows `info` on a bar from [`progress_bar`].
+pub fn show_progress(bar: &ProgressBar, info: &JobInfo) {
+    bar.set_length(info.tiles_total as u64);
+    bar.set_position(info.tiles_done as u64);
+    bar.set_message(match info.eta_s {
+        Some(eta) => format!("ETA {eta:.0}s"),
+        None => info.state.as_str().to_string(),
+    });
+}
+
+/// Polls a job until it finishes, drawing a progress bar on stderr (hidden when it is not a
+/// terminal). Returns the finished job.
+pub async fn wait_for(
+    client: &Client,
+    id: u64,
+    every: Duration,
+    quiet: bool,
+) -> Result<JobInfo, ClientError> {
+    let bar = progress_bar(quiet);
     let mut unreachable_since: Option<std::time::Instant> = None;
     loop {
         let mut pause = every;
@@ -111,12 +127,7 @@ pub async fn wait_for(
                     pause = (every / 10).max(Duration::from_millis(1));
                 }
                 unreachable_since = None;
-                bar.set_length(info.tiles_total as u64);
-                bar.set_position(info.tiles_done as u64);
-                bar.set_message(match info.eta_s {
-                    Some(eta) => format!("ETA {eta:.0}s"),
-                    None => info.state.as_str().to_string(),
-                });
+                show_progress(&bar, &info);
                 if info.state.is_finished() {
                     bar.finish_and_clear();
                     return Ok(info);

@@ -101,7 +101,7 @@ impl Farm {
     fn write_image(&self, job_id: u64) -> Result<()> {
         // A progressive job's image is its last finished pass.
         if let Some(image) = self.progressive_image(job_id)? {
-            self.files.put_image(job_id, &image.to_png(), &image)?;
+            self.files.put_image(job_id, &image.to_png(), image)?;
             return Ok(());
         }
         let (width, height, grid, frames) = {
@@ -129,8 +129,14 @@ impl Farm {
                         &tiles_of(frame),
                     )?;
                     let png = image.to_png();
-                    self.files.put_frame_image(job_id, frame, &png, &image)?;
-                    first.get_or_insert((png, image));
+                    if first.is_none() {
+                        // Kept for the job's image, stored last.
+                        self.files
+                            .put_frame_image(job_id, frame, &png, image.clone())?;
+                        first = Some((png, image));
+                    } else {
+                        self.files.put_frame_image(job_id, frame, &png, image)?;
+                    }
                 }
                 first.unwrap_or_else(|| (Vec::new(), Image::new(0, 0)))
             }
@@ -147,7 +153,7 @@ impl Farm {
         };
         // The job's image is its (first) frame, so single-image clients keep working. Last,
         // because storing it drops the tiles.
-        self.files.put_image(job_id, &first.0, &first.1)?;
+        self.files.put_image(job_id, &first.0, first.1)?;
         Ok(())
     }
 

@@ -42,7 +42,7 @@ impl Farm {
         }
         // Outside the lock. The lease may lapse meanwhile: then another worker owns the tile,
         // and the file (equal pixels, by determinism) is simply overwritten later.
-        self.files.put_tile(job_id, tile, tile_size, pixels)?;
+        self.files.put_tile(job_id, tile, tile_size, rect, pixels)?;
         self.tile_writes.fetch_add(1, Ordering::Relaxed);
         let now = self.now_ms();
         let done = self.lock().complete(lease_id, now)?;

@@ -130,6 +130,12 @@ impl Farm {
         Self::with_store(Db::open_in_memory()?, Files::open(dir)?, config, clock)
     }
 
+    /// [`Farm::open_scratch`] with its files in memory too ([`Files::in_memory`]): no folder,
+    /// and nothing written or read back around the render, for a job known to fit in memory.
+    pub fn open_in_memory(config: FarmConfig, clock: Arc<dyn Clock>) -> Result<Arc<Farm>> {
+        Self::with_store(Db::open_in_memory()?, Files::in_memory(), config, clock)
+    }
+
     fn with_store(
         db: Db,
         files: Files,

@@ -527,7 +527,13 @@ fn a_job_whose_last_tile_landed_before_a_crash_is_assembled_on_start() {
     // The crash came after the last tile's pixels and row were stored, before assembly.
     let files = Files::open(dir.path()).unwrap();
     files
-        .put_tile(job.id, 3, 8, &blank(TileRect::new(8, 8, 8, 8), 0.5))
+        .put_tile(
+            job.id,
+            3,
+            8,
+            TileRect::new(8, 8, 8, 8),
+            &blank(TileRect::new(8, 8, 8, 8), 0.5),
+        )
         .unwrap();
     Db::open(&dir.path().join("tessera.db"))
         .unwrap()

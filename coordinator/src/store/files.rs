@@ -9,12 +9,19 @@
 //! starts with a header naming its tile, so a slot never written (a hole reads as zeros) or
 //! cut off is an error, not a black tile. A tile is counted done only after its write, so a
 //! killed process never leaves a done tile whose slot was half written.
+//!
+//! A farm that ends with its process (`coordinator render` without `--data-dir`) keeps the
+//! same things in memory instead ([`Files::in_memory`]): tiles decoded as they land, images
+//! as they were made. Nothing is read back or converted at the end, and there is no folder to
+//! remove at exit.
 
+use std::collections::HashMap;
 use std::fs;
 use std::io::{ErrorKind, Write};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, MutexGuard};
 
 use protocol::{pixels_from_bytes, pixels_to_bytes};
 use tracer_core::{Image, TileRect};
@@ -25,6 +32,25 @@ use super::StoreError;
 pub struct Files {
     root: PathBuf,
     tmp_counter: AtomicU64,
+    /// Set for a store kept in memory: `root` then only names the paths used as keys.
+    memory: Option<Memory>,
+}
+
+/// An in-memory store's contents, keyed by the paths the disk store would use.
+#[derive(Debug, Default)]
+struct Memory {
+    /// What the disk store writes as whole files: blobs, PNGs, sums.
+    bytes: Mutex<HashMap<PathBuf, Vec<u8>>>,
+    /// What it writes as linear f32 pixels: each finished image, kept as it was made.
+    images: Mutex<HashMap<PathBuf, Image>>,
+    /// Each job's finished tiles, decoded when they land.
+    tiles: Mutex<HashMap<u64, HashMap<u32, Image>>>,
+}
+
+fn locked<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Every change to these maps is a single insert or removal: a panic elsewhere while one
+    // was held leaves nothing half-done.
+    mutex.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 fn is_hash(hash: &str) -> bool {
@@ -50,10 +76,25 @@ impl Files {
         Ok(Files {
             root: root.to_path_buf(),
             tmp_counter: AtomicU64::new(0),
+            memory: None,
         })
     }
 
+    /// A store that keeps everything in this process's memory and nothing on disk, for a
+    /// farm whose data ends with its process (its database is in memory too).
+    pub fn in_memory() -> Files {
+        Files {
+            root: PathBuf::from("memory"),
+            tmp_counter: AtomicU64::new(0),
+            memory: Some(Memory::default()),
+        }
+    }
+
     fn write_atomic(&self, path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+        if let Some(memory) = &self.memory {
+            locked(&memory.bytes).insert(path.to_path_buf(), bytes.to_vec());
+            return Ok(());
+        }
         let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
         let tmp = self
             .root
@@ -82,14 +123,21 @@ impl Files {
     pub fn put_blob(&self, bytes: &[u8]) -> Result<String, StoreError> {
         let hash = protocol::hash_hex(bytes);
         let path = self.blob_path(&hash);
-        if !path.exists() {
+        if !self.exists(&path) {
             self.write_atomic(&path, bytes)?;
         }
         Ok(hash)
     }
 
+    fn exists(&self, path: &Path) -> bool {
+        match &self.memory {
+            Some(memory) => locked(&memory.bytes).contains_key(path),
+            None => path.is_file(),
+        }
+    }
+
     pub fn has_blob(&self, hash: &str) -> bool {
-        is_hash(hash) && self.blob_path(hash).is_file()
+        is_hash(hash) && self.exists(&self.blob_path(hash))
     }
 
     /// The blob's bytes; `None` for an unknown or malformed hash.
@@ -97,12 +145,7 @@ impl Files {
         if !is_hash(hash) {
             return Ok(None);
         }
-        let path = self.blob_path(hash);
-        match fs::read(&path) {
-            Ok(bytes) => Ok(Some(bytes)),
-            Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
-            Err(e) => Err(StoreError::io(format!("reading {}", path.display()), e)),
-        }
+        self.read_optional(&self.blob_path(hash))
     }
 
     fn job_dir(&self, job_id: u64) -> PathBuf {
@@ -122,12 +165,13 @@ impl Files {
     }
 
     /// Persists a finished tile's pixels (f32 little-endian) in its slot, before it is
-    /// acknowledged. `tile_size` is the job's: it sets the slot size.
+    /// acknowledged. `tile_size` is the job's: it sets the slot size; `rect` is the tile's.
     pub fn put_tile(
         &self,
         job_id: u64,
         tile: u32,
         tile_size: u32,
+        rect: TileRect,
         pixels: &[u8],
     ) -> Result<(), StoreError> {
         let path = self.tiles_path(job_id);
@@ -137,6 +181,18 @@ impl Files {
                 "tile {tile}: {} bytes of pixels do not fit a {tile_size}x{tile_size} tile",
                 pixels.len()
             )));
+        }
+        if let Some(memory) = &self.memory {
+            let image = pixels_from_bytes(pixels, rect)
+                .and_then(|p| {
+                    Image::from_pixels(rect.width, rect.height, p).map_err(|e| e.to_string())
+                })
+                .map_err(|e| StoreError::Corrupt(format!("tile {tile}: {e}")))?;
+            locked(&memory.tiles)
+                .entry(job_id)
+                .or_default()
+                .insert(tile, image);
+            return Ok(());
         }
         let open = || {
             fs::OpenOptions::new()
@@ -173,6 +229,18 @@ impl Files {
         rect: TileRect,
     ) -> Result<Image, StoreError> {
         let path = self.tiles_path(job_id);
+        if let Some(memory) = &self.memory {
+            let tiles = locked(&memory.tiles);
+            return match tiles.get(&job_id).and_then(|t| t.get(&tile)) {
+                Some(image) if (image.width, image.height) == (rect.width, rect.height) => {
+                    Ok(image.clone())
+                }
+                _ => Err(StoreError::Corrupt(format!(
+                    "{}: tile {tile} is missing",
+                    path.display()
+                ))),
+            };
+        }
         let slot = TileSlot::new(tile, tile_size);
         let len = rect.pixel_count() * 12;
         let mut record = vec![0u8; TILE_HEADER + len];
@@ -207,6 +275,19 @@ impl Files {
         tile_size: u32,
         tiles: &[(u32, TileRect)],
     ) -> Result<Image, StoreError> {
+        if let Some(memory) = &self.memory {
+            // Copied straight from the decoded tiles: no read, no clone of each tile.
+            let stored = locked(&memory.tiles);
+            let mut image = Image::new(width, height);
+            for &(index, rect) in tiles {
+                let tile = stored.get(&job_id).and_then(|t| t.get(&index));
+                let tile = tile.ok_or_else(|| {
+                    StoreError::Corrupt(format!("job {job_id}: tile {index} is missing"))
+                })?;
+                image.try_insert(rect, tile)?;
+            }
+            return Ok(image);
+        }
         let tiles = tiles
             .iter()
             .map(|&(index, rect)| Ok((rect, self.tile(job_id, index, tile_size, rect)?)));
@@ -216,11 +297,25 @@ impl Files {
     /// Writes the final PNG and its linear pixels, then drops the tiles they were made of.
     /// The linear pixels take what the tiles took, so a job never holds more on disk than
     /// while it rendered. The PNG is written last: its presence marks a complete image.
-    pub fn put_image(&self, job_id: u64, png: &[u8], linear: &Image) -> Result<(), StoreError> {
-        self.write_atomic(&self.linear_path(job_id), &pixels_to_bytes(&linear.pixels))?;
+    pub fn put_image(&self, job_id: u64, png: &[u8], linear: Image) -> Result<(), StoreError> {
+        self.put_linear(&self.linear_path(job_id), linear)?;
         self.write_atomic(&self.image_path(job_id), png)?;
-        let _ = fs::remove_dir_all(self.job_dir(job_id).join("tiles"));
+        match &self.memory {
+            Some(memory) => drop(locked(&memory.tiles).remove(&job_id)),
+            None => drop(fs::remove_dir_all(self.job_dir(job_id).join("tiles"))),
+        }
         Ok(())
+    }
+
+    /// Stores linear pixels at `path`: as f32 little-endian on disk, as they are in memory.
+    fn put_linear(&self, path: &Path, linear: Image) -> Result<(), StoreError> {
+        match &self.memory {
+            Some(memory) => {
+                locked(&memory.images).insert(path.to_path_buf(), linear);
+                Ok(())
+            }
+            None => self.write_atomic(path, &pixels_to_bytes(&linear.pixels)),
+        }
     }
 
     fn sums_path(&self, job_id: u64) -> PathBuf {
@@ -234,11 +329,11 @@ impl Files {
     }
 
     pub fn sums(&self, job_id: u64) -> Result<Option<Vec<u8>>, StoreError> {
-        Self::read_optional(&self.sums_path(job_id))
+        self.read_optional(&self.sums_path(job_id))
     }
 
     pub fn image(&self, job_id: u64) -> Result<Option<Vec<u8>>, StoreError> {
-        Self::read_optional(&self.image_path(job_id))
+        self.read_optional(&self.image_path(job_id))
     }
 
     /// The linear pixels stored by [`Files::put_image`] for a `width`×`height` job.
@@ -248,7 +343,7 @@ impl Files {
         width: u32,
         height: u32,
     ) -> Result<Option<Image>, StoreError> {
-        Self::read_linear(&self.linear_path(job_id), width, height)
+        self.read_linear(&self.linear_path(job_id), width, height)
     }
 
     fn frame_path(&self, job_id: u64, frame: u32, extension: &str) -> PathBuf {
@@ -264,15 +359,14 @@ impl Files {
         job_id: u64,
         frame: u32,
         png: &[u8],
-        linear: &Image,
+        linear: Image,
     ) -> Result<(), StoreError> {
-        let linear_bytes = pixels_to_bytes(&linear.pixels);
-        self.write_atomic(&self.frame_path(job_id, frame, "f32"), &linear_bytes)?;
+        self.put_linear(&self.frame_path(job_id, frame, "f32"), linear)?;
         self.write_atomic(&self.frame_path(job_id, frame, "png"), png)
     }
 
     pub fn frame_image(&self, job_id: u64, frame: u32) -> Result<Option<Vec<u8>>, StoreError> {
-        Self::read_optional(&self.frame_path(job_id, frame, "png"))
+        self.read_optional(&self.frame_path(job_id, frame, "png"))
     }
 
     /// The linear pixels of one frame stored by [`Files::put_frame_image`].
@@ -283,15 +377,32 @@ impl Files {
         width: u32,
         height: u32,
     ) -> Result<Option<Image>, StoreError> {
-        Self::read_linear(&self.frame_path(job_id, frame, "f32"), width, height)
+        self.read_linear(&self.frame_path(job_id, frame, "f32"), width, height)
     }
 
-    fn read_linear(path: &Path, width: u32, height: u32) -> Result<Option<Image>, StoreError> {
-        let Some(bytes) = Self::read_optional(path)? else {
-            return Ok(None);
-        };
+    fn read_linear(
+        &self,
+        path: &Path,
+        width: u32,
+        height: u32,
+    ) -> Result<Option<Image>, StoreError> {
         let corrupt =
             |e: &dyn std::fmt::Display| StoreError::Corrupt(format!("{}: {e}", path.display()));
+        if let Some(memory) = &self.memory {
+            return match locked(&memory.images).get(path) {
+                Some(image) if (image.width, image.height) == (width, height) => {
+                    Ok(Some(image.clone()))
+                }
+                Some(image) => Err(corrupt(&format!(
+                    "a {}x{} image, not {width}x{height}",
+                    image.width, image.height
+                ))),
+                None => Ok(None),
+            };
+        }
+        let Some(bytes) = self.read_optional(path)? else {
+            return Ok(None);
+        };
         let pixels = pixels_from_bytes(&bytes, TileRect::new(0, 0, width, height))
             .map_err(|e| corrupt(&e))?;
         Image::from_pixels(width, height, pixels)
@@ -299,7 +410,10 @@ impl Files {
             .map_err(|e| corrupt(&e))
     }
 
-    fn read_optional(path: &Path) -> Result<Option<Vec<u8>>, StoreError> {
+    fn read_optional(&self, path: &Path) -> Result<Option<Vec<u8>>, StoreError> {
+        if let Some(memory) = &self.memory {
+            return Ok(locked(&memory.bytes).get(path).cloned());
+        }
         match fs::read(path) {
             Ok(bytes) => Ok(Some(bytes)),
             Err(e) if e.kind() == ErrorKind::NotFound => Ok(None),
@@ -362,9 +476,32 @@ mod tests {
     }
 
     #[test]
-    fn tiles_assemble_into_an_image() {
+    fn a_store_in_memory_writes_no_file() {
+        let files = Files::in_memory();
+        let hash = files.put_blob(b"hello").unwrap();
+        assert!(files.has_blob(&hash));
+        assert_eq!(files.blob(&hash).unwrap().unwrap(), b"hello");
+        assert!(!files.has_blob(&protocol::hash_hex(b"other")));
+        files.put_sums(3, b"sums").unwrap();
+        assert_eq!(files.sums(3).unwrap().unwrap(), b"sums");
+        assert!(!files.root.exists(), "{:?}", files.root);
+    }
+
+    /// The disk store in a temporary folder, and the store in memory.
+    fn both_stores() -> Vec<(Files, Option<tempfile::TempDir>)> {
         let dir = tempfile::tempdir().unwrap();
-        let files = Files::open(dir.path()).unwrap();
+        let disk = Files::open(dir.path()).unwrap();
+        vec![(disk, Some(dir)), (Files::in_memory(), None)]
+    }
+
+    #[test]
+    fn tiles_assemble_into_an_image() {
+        for (files, _dir) in both_stores() {
+            tiles_assemble_into_an_image_in(&files);
+        }
+    }
+
+    fn tiles_assemble_into_an_image_in(files: &Files) {
         let rects = TileRect::grid(3, 2, 2);
         let mut expected = Image::new(3, 2);
         for (i, rect) in rects.iter().enumerate() {
@@ -372,7 +509,7 @@ mod tests {
             tile.pixels.iter_mut().for_each(|p| *p = i as f32 / 4.0);
             expected.insert(*rect, &tile);
             files
-                .put_tile(7, i as u32, 2, &pixels_to_bytes(&tile.pixels))
+                .put_tile(7, i as u32, 2, *rect, &pixels_to_bytes(&tile.pixels))
                 .unwrap();
         }
         let all: Vec<(u32, TileRect)> = rects
@@ -383,7 +520,7 @@ mod tests {
         let assembled = files.assemble(7, 3, 2, 2, &all).unwrap();
         assert_eq!(assembled, expected);
         assert_eq!(files.linear_image(7, 3, 2).unwrap(), None);
-        files.put_image(7, b"png", &assembled).unwrap();
+        files.put_image(7, b"png", assembled).unwrap();
         assert_eq!(files.image(7).unwrap().unwrap(), b"png");
         assert_eq!(files.linear_image(7, 3, 2).unwrap(), Some(expected));
         assert!(
@@ -398,13 +535,17 @@ mod tests {
 
     #[test]
     fn a_tile_never_written_is_missing_not_black() {
-        let dir = tempfile::tempdir().unwrap();
-        let files = Files::open(dir.path()).unwrap();
+        for (files, _dir) in both_stores() {
+            a_tile_never_written_is_missing_not_black_in(&files);
+        }
+    }
+
+    fn a_tile_never_written_is_missing_not_black_in(files: &Files) {
         let rect = TileRect::new(0, 0, 4, 4);
         let pixels = pixels_to_bytes(&[0.5; 48]);
         // Tile 3 extends the file past tile 1's slot, which stays a hole.
-        files.put_tile(1, 3, 4, &pixels).unwrap();
-        files.put_tile(1, 0, 4, &pixels).unwrap();
+        files.put_tile(1, 3, 4, rect, &pixels).unwrap();
+        files.put_tile(1, 0, 4, rect, &pixels).unwrap();
         assert_eq!(files.tile(1, 0, 4, rect).unwrap().pixels, vec![0.5; 48]);
         for missing in [1, 7] {
             let err = files.tile(1, missing, 4, rect).unwrap_err().to_string();
@@ -413,8 +554,15 @@ mod tests {
         // A tile read with another tile's index is not mistaken for it.
         assert!(files.tile(1, 3, 4, TileRect::new(0, 0, 4, 2)).is_err());
         assert!(
-            files.put_tile(1, 2, 2, &pixels).is_err(),
+            files.put_tile(1, 2, 2, rect, &pixels).is_err(),
             "too big for its slot"
         );
+        let whole = [(0, rect), (3, rect)];
+        assert_eq!(
+            files.assemble(1, 4, 4, 4, &whole).unwrap().pixels,
+            vec![0.5; 48]
+        );
+        let err = files.assemble(1, 4, 4, 4, &[(1, rect)]).unwrap_err();
+        assert!(err.to_string().contains("tile 1 is missing"), "{err}");
     }
 }
