@@ -183,9 +183,9 @@ fn measure_image(scene: &Scene, args: &Args, seed: u64, reference: &Image) -> Me
     let n = spp as f64;
     for p in 0..pixels {
         let s = &sums[p * SUMS..(p + 1) * SUMS];
-        for c in 0..3 {
+        for (c, sum) in s[..3].iter().enumerate() {
             // As a one-shot render divides and stores it (f32).
-            let v = (s[c] / n) as f32;
+            let v = (sum / n) as f32;
             m.image.pixels[p * 3 + c] = v;
             let r = reference.pixels[p * 3 + c];
             let d = v.clamp(0.0, 1.0) as f64 - r.clamp(0.0, 1.0) as f64;
