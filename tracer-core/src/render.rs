@@ -323,7 +323,12 @@ impl RowShader<'_> {
                 order[(sample - first) as usize]
             }
         };
-        let Some(slots) = frustum.filter(|_| samples.len() >= MIN_PACKET) else {
+        // Only a mesh model shares work among a packet's rays; other objects take them one by
+        // one, so a pixel whose frustum meets no model gains nothing from a packet and pays
+        // its set-up (test and cornell_box rendered 10-15% slower with packets everywhere).
+        let packet_slots = frustum
+            .filter(|slots| samples.len() >= MIN_PACKET && self.world.any_model_among(slots));
+        let Some(slots) = packet_slots else {
             for sample in samples {
                 let mut ray = eye.sample_in(x, self.y, sample, stratum(&self.order, sample));
                 let (color, counts) = self.tracer.sample(

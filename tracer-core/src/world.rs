@@ -518,6 +518,14 @@ impl World {
         best
     }
 
+    /// Whether any of these top-level slots holds a mesh model (the only kind of object
+    /// [`World::intersect_packet`] walks once for a whole packet).
+    pub fn any_model_among(&self, slots: &[u32]) -> bool {
+        slots
+            .iter()
+            .any(|&slot| matches!(self.objects[slot as usize], Object::Model(_)))
+    }
+
     /// [`World::intersect`] for up to [`PACKET`] rays at once, into `hits` (one per ray),
     /// each the same hit `intersect` finds for that ray. Coherent rays (a block of eye rays)
     /// share the work: a mesh's BVH is walked once for the packet (see
