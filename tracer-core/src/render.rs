@@ -328,20 +328,20 @@ impl RowShader<'_> {
         // its set-up (test and cornell_box rendered 10-15% slower with packets everywhere).
         let packet_slots = frustum
             .filter(|slots| samples.len() >= MIN_PACKET && self.world.any_model_among(slots));
+        // Shades one eye sample, its first hit found as `first` says, into the pixel's sums
+        // (captures only the tracer and the ray counters, so the row's buffers stay free).
+        let mut shade = |sample: u32, mut ray: EyeSample, first: Eye| {
+            let (color, counts) =
+                self.tracer
+                    .sample(&ray.ray, ray.near, ray.far, &mut ray.rng, ray.gloss, first);
+            add_sample::<ESTIMATE>(acc, sample, color, counts);
+            self.radiance_rays += counts.radiance as u64;
+            self.shadow_rays += counts.shadow as u64;
+        };
         let Some(slots) = packet_slots else {
             for sample in samples {
-                let mut ray = eye.sample_in(x, self.y, sample, stratum(&self.order, sample));
-                let (color, counts) = self.tracer.sample(
-                    &ray.ray,
-                    ray.near,
-                    ray.far,
-                    &mut ray.rng,
-                    ray.gloss,
-                    frustum.map_or(Eye::Walk, Eye::Among),
-                );
-                add_sample::<ESTIMATE>(acc, sample, color, counts);
-                self.radiance_rays += counts.radiance as u64;
-                self.shadow_rays += counts.shadow as u64;
+                let ray = eye.sample_in(x, self.y, sample, stratum(&self.order, sample));
+                shade(sample, ray, frustum.map_or(Eye::Walk, Eye::Among));
             }
             return;
         };
@@ -366,18 +366,8 @@ impl RowShader<'_> {
                     *h = self.world.intersect_among(&e.ray, e.near, e.far, slots);
                 }
             }
-            for (k, mut ray) in self.eyes.drain(..).enumerate() {
-                let (color, counts) = self.tracer.sample(
-                    &ray.ray,
-                    ray.near,
-                    ray.far,
-                    &mut ray.rng,
-                    ray.gloss,
-                    Eye::Found(self.hits[k]),
-                );
-                add_sample::<ESTIMATE>(acc, start + k as u32, color, counts);
-                self.radiance_rays += counts.radiance as u64;
-                self.shadow_rays += counts.shadow as u64;
+            for (k, ray) in self.eyes.drain(..).enumerate() {
+                shade(start + k as u32, ray, Eye::Found(self.hits[k]));
             }
             start = end;
         }
