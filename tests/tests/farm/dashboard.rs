@@ -165,36 +165,74 @@ async fn preview_bytes(browser: &Browser) -> Vec<u8> {
     bytes.iter().map(|b| b.as_u64().unwrap() as u8).collect()
 }
 
+/// What each browser test starts: a coordinator with a token, one single-threaded worker
+/// (slow enough, a few seconds a job, to watch the render go by), chromedriver and a headless
+/// Chromium. Fields are dropped (processes stopped) when the test ends.
+struct DashboardFarm {
+    tmp: tempfile::TempDir,
+    coord: Coordinator,
+    client: Client,
+    _worker: Proc,
+    _driver: Proc,
+    browser: Browser,
+}
+
+impl DashboardFarm {
+    /// None (after saying so) where Chromium or chromedriver is missing, unless
+    /// `TESSERA_REQUIRE_CHROMIUM=1`, which makes that a failure.
+    async fn start(test: &str, worker: &str) -> Option<DashboardFarm> {
+        let (chromium, driver) = match browser_programs() {
+            Ok(found) => found,
+            Err(why) if std::env::var("TESSERA_REQUIRE_CHROMIUM").as_deref() == Ok("1") => {
+                panic!("TESSERA_REQUIRE_CHROMIUM=1 but {why}")
+            }
+            Err(why) => {
+                eprintln!("SKIPPED {test}: {why}");
+                return None;
+            }
+        };
+        let tmp = tempfile::tempdir().unwrap();
+        let coord = start_coordinator(
+            &tmp.path().join("data"),
+            0,
+            &["--token", TOKEN],
+            tmp.path().join("c.log"),
+        );
+        let client = Client::new(&coord.url, Some(TOKEN.into())).unwrap();
+        let worker = start_worker(
+            &coord.url,
+            worker,
+            &["--token", TOKEN, "--threads", "1"],
+            tmp.path().join("w.log"),
+        );
+        let (driver, driver_url) = start_driver(&driver, tmp.path().join("chromedriver.log")).await;
+        let browser = open_browser(&chromium, &driver_url).await;
+        Some(DashboardFarm {
+            tmp,
+            coord,
+            client,
+            _worker: worker,
+            _driver: driver,
+            browser,
+        })
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
-    let (chromium, driver) = match browser_programs() {
-        Ok(found) => found,
-        Err(why) if std::env::var("TESSERA_REQUIRE_CHROMIUM").as_deref() == Ok("1") => {
-            panic!("TESSERA_REQUIRE_CHROMIUM=1 but {why}")
-        }
-        Err(why) => {
-            eprintln!("SKIPPED the dashboard browser test: {why}");
-            return;
-        }
+    // Every field bound by name: one left to `..` would be dropped (its process stopped) here.
+    let Some(DashboardFarm {
+        tmp,
+        coord,
+        client,
+        _worker,
+        _driver,
+        browser,
+    }) = DashboardFarm::start("the dashboard browser test", "dash-worker").await
+    else {
+        return;
     };
-    let tmp = tempfile::tempdir().unwrap();
     let artifacts = artifacts_dir();
-    let coord = start_coordinator(
-        &tmp.path().join("data"),
-        0,
-        &["--token", TOKEN],
-        tmp.path().join("c.log"),
-    );
-    let client = Client::new(&coord.url, Some(TOKEN.into())).unwrap();
-    // One single-threaded worker: slow enough (a few seconds) to watch the render go by.
-    let _worker = start_worker(
-        &coord.url,
-        "dash-worker",
-        &["--token", TOKEN, "--threads", "1"],
-        tmp.path().join("w.log"),
-    );
-    let (_driver, driver_url) = start_driver(&driver, tmp.path().join("chromedriver.log")).await;
-    let browser = open_browser(&chromium, &driver_url).await;
 
     // The page asks for the token once.
     browser.goto(&format!("{}/", coord.url)).await.unwrap();
@@ -462,37 +500,21 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     browser.close().await.unwrap();
 }
 
-/// Reads `coordinator serve`'s stdout until its dashboard line.
 /// A progressive job refines live on the page: the preview, the convergence plot and the
 /// sample map change pass after pass while the job runs, and end on the job's final PNG.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_dashboard_shows_a_progressive_job_refine_pass_by_pass() {
-    let (chromium, driver) = match browser_programs() {
-        Ok(found) => found,
-        Err(why) if std::env::var("TESSERA_REQUIRE_CHROMIUM").as_deref() == Ok("1") => {
-            panic!("TESSERA_REQUIRE_CHROMIUM=1 but {why}")
-        }
-        Err(why) => {
-            eprintln!("SKIPPED the progressive dashboard test: {why}");
-            return;
-        }
+    let Some(DashboardFarm {
+        tmp: _tmp,
+        coord,
+        client,
+        _worker,
+        _driver,
+        browser,
+    }) = DashboardFarm::start("the progressive dashboard test", "progressive-worker").await
+    else {
+        return;
     };
-    let tmp = tempfile::tempdir().unwrap();
-    let coord = start_coordinator(
-        &tmp.path().join("data"),
-        0,
-        &["--token", TOKEN],
-        tmp.path().join("c.log"),
-    );
-    let client = Client::new(&coord.url, Some(TOKEN.into())).unwrap();
-    let _worker = start_worker(
-        &coord.url,
-        "progressive-worker",
-        &["--token", TOKEN, "--threads", "1"],
-        tmp.path().join("w.log"),
-    );
-    let (_driver, driver_url) = start_driver(&driver, tmp.path().join("chromedriver.log")).await;
-    let browser = open_browser(&chromium, &driver_url).await;
     // About nine passes (mean spp 2, 3, 4.5, ... up to 32) on one thread: several seconds.
     let mut spec = small_spec(1, 40);
     spec.render.width = 240;
@@ -551,6 +573,7 @@ async fn the_dashboard_shows_a_progressive_job_refine_pass_by_pass() {
     }
 }
 
+/// Reads `coordinator serve`'s stdout until its dashboard line.
 fn dashboard_line(mut cmd: Command, log: PathBuf) -> String {
     use std::io::{BufRead, BufReader};
     cmd.stdout(std::process::Stdio::piped());
