@@ -16,11 +16,9 @@ use tracer_core::{RenderSettings, Scene};
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let [_, scene, measure, passes] = args.as_slice() else {
-        return Err(
-            "usage: bench_measure SCENE \
+        return Err("usage: bench_measure SCENE \
              primary|primary-single|incoherent|shadow|shadow-single|build PASSES"
-                .into(),
-        );
+            .into());
     };
     let passes: usize = passes.parse()?;
     let scene = Scene::load(Path::new(scene))?;

@@ -436,7 +436,10 @@ mod tests {
             }
             assert_eq!(seen.iter().sum::<usize>(), rays.shadow.len());
             let per_item = rays.shadow.len() / work_items(&rays, Measure::Shadow).max(1);
-            assert!(rays.shadow.len() < 2 * CHUNK || per_item >= CHUNK / 2, "{per_item}");
+            assert!(
+                rays.shadow.len() < 2 * CHUNK || per_item >= CHUNK / 2,
+                "{per_item}"
+            );
         }
     }
 }

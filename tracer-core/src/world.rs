@@ -660,24 +660,24 @@ impl World {
         if n == 0 {
             return;
         }
-        let Some(packet) = PacketBounds::new(rays) else {
-            // A ray outside the f32 tests' range: the mesh walks would go ray by ray anyway.
-            for i in 0..n {
-                blocked[i] = self.occluded(&rays[i], t_max[i]);
-            }
-            return;
-        };
         let mut limits = [0.0; PACKET];
         let limits = &mut limits[..n];
         limits.copy_from_slice(t_max);
         let mut world_tri_rays = [None; PACKET];
         let mut live = u64::MAX >> (64 - n);
         if self.objects.len() == 1 {
-            let reach = t_max.iter().fold(f64::NEG_INFINITY, |a, &t| a.max(t));
-            if packet.may_hit(&self.top.bounds(), reach) {
-                self.object_packet_any(0, rays, limits, &mut live, &mut world_tri_rays);
-            }
+            // No world-space bounds: shadow rays start on surfaces inside the object's box,
+            // so they would skip nothing, and a mesh's walk culls a packet that misses it at
+            // its root (it also takes rays outside the f32 tests' range one by one).
+            self.object_packet_any(0, rays, limits, &mut live, &mut world_tri_rays);
         } else {
+            let Some(packet) = PacketBounds::new(rays) else {
+                // A ray outside the f32 tests' range: the mesh walks would go ray by ray.
+                for i in 0..n {
+                    blocked[i] = self.occluded(&rays[i], t_max[i]);
+                }
+                return;
+            };
             live = self
                 .top
                 .traverse_packet_leaves_any(&packet, limits, |slots, limits, live| {
@@ -738,16 +738,16 @@ impl World {
         let local: &[Ray] = unsafe { std::slice::from_raw_parts(local.as_ptr().cast::<Ray>(), n) };
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
-        let mut blocked = mesh
-            .bvh
-            .traverse_packet_any(local, &mut bounds[..n], |j, tris, t_max| {
-                let (tri_ray, ray32) = tri_rays[j].get_or_insert_with(|| {
-                    let tri_ray = TriangleRay::new(&local[j]);
-                    (tri_ray, TriangleRayF32::new(&tri_ray))
+        let mut blocked =
+            mesh.bvh
+                .traverse_packet_any(local, &mut bounds[..n], |j, tris, t_max| {
+                    let (tri_ray, ray32) = tri_rays[j].get_or_insert_with(|| {
+                        let tri_ray = TriangleRay::new(&local[j]);
+                        (tri_ray, TriangleRayF32::new(&tri_ray))
+                    });
+                    let mut found = None;
+                    mesh_leaf::<true>(mesh, tri_ray, ray32, tris, 0.0, t_max, &mut found)
                 });
-                let mut found = None;
-                mesh_leaf::<true>(mesh, tri_ray, ray32, tris, 0.0, t_max, &mut found)
-            });
         while blocked != 0 {
             let j = blocked.trailing_zeros() as usize;
             blocked &= blocked - 1;
@@ -1515,8 +1515,14 @@ mod tests {
                     }
                 })
                 .collect();
-            let world =
-                World::with_movers(w.spheres.clone(), triangles, meshes, models, vec![], (0.0, 0.0));
+            let world = World::with_movers(
+                w.spheres.clone(),
+                triangles,
+                meshes,
+                models,
+                vec![],
+                (0.0, 0.0),
+            );
             assert!(world.objects.len() > 10);
             worlds.push((scale, offset, world));
         }
@@ -1524,7 +1530,9 @@ mod tests {
         let single = World::with_movers(
             vec![],
             vec![],
-            vec![grid_mesh(40, |x, y| 0.3 * (9.0 * x).sin() * (7.0 * y).cos())],
+            vec![grid_mesh(40, |x, y| {
+                0.3 * (9.0 * x).sin() * (7.0 * y).cos()
+            })],
             vec![Model {
                 transform: Transform::new(
                     DVec3::new(-0.5, -0.5, -2.0),
@@ -1555,17 +1563,16 @@ mod tests {
             for k in 0..120 {
                 let n = [64, 64, 1, 23, 64, 40, 7, 64][k % 8];
                 let (bx, by) = ((k * 8) as f64 % w, ((k * 8) as f64 / w).floor() * 8.0 % h);
-                let light = offset
-                    + DVec3::new(next() * 2.0 - 1.0, 1.5 + next(), next() - 2.0) * scale;
+                let light =
+                    offset + DVec3::new(next() * 2.0 - 1.0, 1.5 + next(), next() - 2.0) * scale;
                 let mut rays = Vec::new();
                 let mut limits = Vec::new();
                 for i in 0..n {
                     let (x, y) = (bx + (i % 8) as f64 + 0.5, by + (i / 8) as f64 + 0.5);
                     let eye = camera.ray(x, y, w, h);
-                    let start = world.intersect(&eye, 0.0, f64::INFINITY).map_or(
-                        eye.origin + eye.dir * 3.0 * scale,
-                        |hit| eye.at(hit.t),
-                    );
+                    let start = world
+                        .intersect(&eye, 0.0, f64::INFINITY)
+                        .map_or(eye.origin + eye.dir * 3.0 * scale, |hit| eye.at(hit.t));
                     let (ray, t_max) = match k % 4 {
                         // A block's shadow rays to one light, offset off their surfaces as
                         // the shader offsets them (some start on the far side).
@@ -1581,7 +1588,11 @@ mod tests {
                                 + DVec3::new(next() - 0.5, next() - 0.5, -2.0 - next() * 2.0)
                                     * scale;
                             let d = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
-                            let t = if i % 2 == 0 { f64::INFINITY } else { 0.7 * scale };
+                            let t = if i % 2 == 0 {
+                                f64::INFINITY
+                            } else {
+                                0.7 * scale
+                            };
                             (Ray::new(o, d.normalize()), t)
                         }
                         // One ray outside the f32 tests' range (axis-parallel, or far off).
@@ -1606,15 +1617,15 @@ mod tests {
                 world.occluded_packet(&rays, &limits, &mut found);
                 for i in 0..n {
                     let alone = world.occluded(&rays[i], limits[i]);
-                    assert_eq!(
-                        found[i], alone,
-                        "scale {scale}, packet {k}, ray {i} of {n}"
-                    );
+                    assert_eq!(found[i], alone, "scale {scale}, packet {k}, ray {i} of {n}");
                     blocked += alone as usize;
                     open += !alone as usize;
                 }
             }
-            assert!(blocked > 200 && open > 200, "scale {scale}: {blocked} blocked, {open} open");
+            assert!(
+                blocked > 200 && open > 200,
+                "scale {scale}: {blocked} blocked, {open} open"
+            );
         }
         worlds[0].2.occluded_packet(&[], &[], &mut []);
     }

@@ -298,7 +298,8 @@ impl Bvh {
         #[cfg(target_arch = "x86_64")]
         if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2.
-            return all & !unsafe { self.traverse_packet_avx2::<ORDER>(&packet, rays, t_max, leaf) };
+            return all
+                & !unsafe { self.traverse_packet_avx2::<ORDER>(&packet, rays, t_max, leaf) };
         }
         all & !self.traverse_packet_with::<ORDER>(
             rays,
@@ -743,9 +744,8 @@ mod tests {
                     .collect();
                 let only: Vec<Ray> = rays.iter().map(|r| r.0).collect();
                 let mut limits: Vec<f64> = rays.iter().map(|r| r.1).collect();
-                let mask = bvh.traverse_packet_any(&only, &mut limits, |i, s, t| {
-                    hit(&only[i], s, *t)
-                });
+                let mask =
+                    bvh.traverse_packet_any(&only, &mut limits, |i, s, t| hit(&only[i], s, *t));
                 for (i, &alone) in single.iter().enumerate() {
                     assert_eq!(
                         mask & (1 << i) != 0,
@@ -761,8 +761,14 @@ mod tests {
                 assert_eq!(mask & !(u64::MAX >> (64 - n)), 0);
             }
         }
-        assert!(blocked > 300 && open > 300, "{blocked} blocked, {open} open");
-        assert_eq!(Bvh::build(&[]).traverse_packet_any(&[], &mut [], |_, _, _| true), 0);
+        assert!(
+            blocked > 300 && open > 300,
+            "{blocked} blocked, {open} open"
+        );
+        assert_eq!(
+            Bvh::build(&[]).traverse_packet_any(&[], &mut [], |_, _, _| true),
+            0
+        );
     }
 
     #[cfg(target_arch = "x86_64")]
