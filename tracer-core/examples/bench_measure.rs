@@ -4,8 +4,8 @@
 //! `cargo build --release --example bench_measure`, then e.g.
 //! `perf stat -e cycles:u,instructions:u $CARGO_TARGET_DIR/release/examples/bench_measure
 //!  ../shared/scenes/course/dragon.scene incoherent 10`
-//! (measure: primary (in packets), primary-single (one ray at a time), incoherent, shadow or
-//! build; the number of passes).
+//! (measure: primary (in packets), primary-single (one ray at a time), incoherent, shadow (in
+//! packets), shadow-single or build; the number of passes).
 
 use std::path::Path;
 use std::time::Instant;
@@ -16,10 +16,9 @@ use tracer_core::{RenderSettings, Scene};
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let [_, scene, measure, passes] = args.as_slice() else {
-        return Err(
-            "usage: bench_measure SCENE primary|primary-single|incoherent|shadow|build PASSES"
-                .into(),
-        );
+        return Err("usage: bench_measure SCENE \
+             primary|primary-single|incoherent|shadow|shadow-single|build PASSES"
+            .into());
     };
     let passes: usize = passes.parse()?;
     let scene = Scene::load(Path::new(scene))?;
@@ -34,6 +33,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "primary-single" => Some(Measure::PrimarySingle),
         "incoherent" => Some(Measure::Incoherent),
         "shadow" => Some(Measure::Shadow),
+        "shadow-single" => Some(Measure::ShadowSingle),
         "build" => None,
         other => return Err(format!("unknown measure {other}").into()),
     };

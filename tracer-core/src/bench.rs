@@ -58,6 +58,19 @@ pub struct RaySets {
     /// From every primary hit to the first light, with the distance to it (empty without
     /// a light).
     pub shadow: Vec<(Ray, f64)>,
+    /// The pixel (index into `primary`) each shadow ray starts from, ascending.
+    pub shadow_pixel: Vec<u32>,
+    /// The parallel work items of [`Measure::Shadow`]: runs of 8×8-pixel blocks along one
+    /// row of blocks, about [`CHUNK`] shadow rays each.
+    shadow_items: Vec<ShadowItem>,
+}
+
+/// Blocks `first..end` (in units of `PACKET_SIDE` pixels across) of block row `row`.
+#[derive(Clone, Copy, Debug)]
+struct ShadowItem {
+    row: u32,
+    first: u32,
+    end: u32,
 }
 
 /// One of the ray measures of [`run`], for [`trace`].
@@ -68,7 +81,11 @@ pub enum Measure {
     /// The same rays one at a time ([`World::intersect`]), for comparison.
     PrimarySingle,
     Incoherent,
+    /// Shadow rays in packets of the 8×8 pixel blocks they start from
+    /// ([`World::occluded_packet`]), as `tracer bench` traces them.
     Shadow,
+    /// The same rays one at a time ([`World::occluded`]), for comparison.
+    ShadowSingle,
 }
 
 impl RaySets {
@@ -100,22 +117,23 @@ impl RaySets {
                 spawn_ray(s.position, s.geometric_normal, dir, *scale, 0.0)
             })
             .collect();
-        let shadow = match scene.lights.first() {
+        let (shadow, shadow_pixel): (Vec<(Ray, f64)>, Vec<u32>) = match scene.lights.first() {
             Some(light) => hits
                 .iter()
-                .filter_map(|(_, s, scale)| {
+                .filter_map(|(i, s, scale)| {
                     let to_light = light.position - s.position;
                     let d = to_light.length();
                     (d > 0.0).then(|| {
                         let ray =
                             spawn_ray(s.position, s.geometric_normal, to_light / d, *scale, 0.0);
                         let len = (light.position - ray.origin).length();
-                        (ray, len)
+                        ((ray, len), *i)
                     })
                 })
-                .collect(),
-            None => Vec::new(),
+                .unzip(),
+            None => (Vec::new(), Vec::new()),
         };
+        let shadow_items = shadow_items(&shadow_pixel, w as usize, h as usize);
         Ok(RaySets {
             primary,
             width: w as usize,
@@ -123,7 +141,15 @@ impl RaySets {
             far,
             incoherent,
             shadow,
+            shadow_pixel,
+            shadow_items,
         })
+    }
+
+    /// The first shadow ray from pixel `pixel` or a later one (shadow rays are in pixel
+    /// order).
+    fn shadow_from(&self, pixel: usize) -> usize {
+        self.shadow_pixel.partition_point(|&q| (q as usize) < pixel)
     }
 
     /// The number of rays of `measure`.
@@ -131,9 +157,40 @@ impl RaySets {
         match measure {
             Measure::Primary | Measure::PrimarySingle => self.primary.len(),
             Measure::Incoherent => self.incoherent.len(),
-            Measure::Shadow => self.shadow.len(),
+            Measure::Shadow | Measure::ShadowSingle => self.shadow.len(),
         }
     }
+}
+
+/// Splits the rows of 8×8-pixel blocks of a `width`×`height` image into runs of blocks
+/// holding about [`CHUNK`] shadow rays each (blocks without any are left out), so that a
+/// work item of packets costs about what one of [`CHUNK`] single rays does.
+fn shadow_items(shadow_pixel: &[u32], width: usize, height: usize) -> Vec<ShadowItem> {
+    let across = width.div_ceil(PACKET_SIDE);
+    let mut per_block = vec![0u32; across * height.div_ceil(PACKET_SIDE)];
+    for &p in shadow_pixel {
+        let (x, y) = (p as usize % width, p as usize / width);
+        per_block[y / PACKET_SIDE * across + x / PACKET_SIDE] += 1;
+    }
+    let mut items = Vec::new();
+    for (row, blocks) in per_block.chunks(across).enumerate() {
+        let (mut first, mut rays) = (None, 0);
+        for (b, &count) in blocks.iter().enumerate() {
+            if count > 0 {
+                first.get_or_insert(b);
+                rays += count as usize;
+            }
+            if let Some(f) = first.filter(|_| rays >= CHUNK || b + 1 == across) {
+                items.push(ShadowItem {
+                    row: row as u32,
+                    first: f as u32,
+                    end: b as u32 + 1,
+                });
+                (first, rays) = (None, 0);
+            }
+        }
+    }
+    items
 }
 
 /// Traces the rays of `measure` on the calling thread; returns how many hit (or, for shadow
@@ -152,6 +209,7 @@ fn work_items(rays: &RaySets, measure: Measure) -> usize {
             let height = rays.primary.len().checked_div(rays.width).unwrap_or(0);
             rays.width.div_ceil(PACKET_SIDE * TILE_PACKETS) * height.div_ceil(PACKET_SIDE)
         }
+        Measure::Shadow => rays.shadow_items.len(),
         _ => rays.len(measure).div_ceil(CHUNK),
     }
 }
@@ -194,10 +252,51 @@ fn trace_item(scene: &Scene, rays: &RaySets, measure: Measure, item: usize) -> u
             .iter()
             .filter(|r| world.intersect(r, 0.0, f64::INFINITY).is_some())
             .count(),
-        Measure::Shadow => rays.shadow[range]
+        Measure::Shadow => {
+            let mut blocked = 0;
+            let mut found = [false; PACKET];
+            shadow_packets(rays, item, |packet, limits| {
+                let found = &mut found[..packet.len()];
+                world.occluded_packet(packet, limits, found);
+                blocked += found.iter().filter(|&&b| b).count();
+            });
+            blocked
+        }
+        Measure::ShadowSingle => rays.shadow[range]
             .iter()
             .filter(|(r, len)| world.occluded(r, *len))
             .count(),
+    }
+}
+
+/// Hands `packet(rays, t_max)` the shadow rays of each 8×8-pixel block of work item `item`
+/// of [`Measure::Shadow`], block by block (an empty slice for a block without any).
+fn shadow_packets(rays: &RaySets, item: usize, mut packet: impl FnMut(&[Ray], &[f64])) {
+    let width = rays.width;
+    let height = rays.primary.len() / width;
+    let item = rays.shadow_items[item];
+    let y0 = item.row as usize * PACKET_SIDE;
+    let ys = y0..(y0 + PACKET_SIDE).min(height);
+    // Per pixel row of the block row, the next shadow ray of the item there (the rays are in
+    // pixel order, so a block's part of a row is a run).
+    let mut next = [0usize; PACKET_SIDE];
+    for (n, y) in next.iter_mut().zip(ys.clone()) {
+        *n = rays.shadow_from(y * width + item.first as usize * PACKET_SIDE);
+    }
+    let mut shadow = [Ray::new(glam::DVec3::ZERO, glam::DVec3::Z); PACKET];
+    let mut limits = [0.0; PACKET];
+    for block in item.first as usize..item.end as usize {
+        let x_end = ((block + 1) * PACKET_SIDE).min(width);
+        let mut len = 0;
+        for (n, y) in next.iter_mut().zip(ys.clone()) {
+            let end = (y * width + x_end) as u32;
+            while *n < rays.shadow.len() && rays.shadow_pixel[*n] < end {
+                (shadow[len], limits[len]) = rays.shadow[*n];
+                len += 1;
+                *n += 1;
+            }
+        }
+        packet(&shadow[..len], &limits[..len]);
     }
 }
 
@@ -289,4 +388,58 @@ fn time_rays(scene: &Scene, rays: &RaySets, measure: Measure) -> Duration {
 
 fn best_of(repeats: usize, mut run: impl FnMut() -> Duration) -> Duration {
     (0..repeats).map(|_| run()).min().unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DVec3;
+
+    #[test]
+    fn shadow_packets_hold_each_shadow_ray_once_with_its_blocks_neighbours() {
+        let mut next = crate::test_rng::uniform(8);
+        for (w, h, density) in [(100, 37, 0.3), (64, 64, 1.0), (13, 5, 0.5), (40, 16, 0.0)] {
+            // Shadow rays from some pixels, each marked by its pixel in the origin's x.
+            let shadow_pixel: Vec<u32> = (0..w * h)
+                .filter(|_| next() < density)
+                .map(|p| p as u32)
+                .collect();
+            let shadow = shadow_pixel
+                .iter()
+                .map(|&p| (Ray::new(DVec3::new(p as f64, 0.0, 0.0), DVec3::Z), p as f64))
+                .collect();
+            let rays = RaySets {
+                primary: vec![Ray::new(DVec3::ZERO, DVec3::Z); w * h],
+                width: w,
+                near: 0.0,
+                far: 1.0,
+                incoherent: Vec::new(),
+                shadow,
+                shadow_items: shadow_items(&shadow_pixel, w, h),
+                shadow_pixel,
+            };
+            let mut seen = vec![0; w * h];
+            for item in 0..work_items(&rays, Measure::Shadow) {
+                shadow_packets(&rays, item, |packet, limits| {
+                    assert!(packet.len() <= PACKET);
+                    let block = |p: usize| (p % w / PACKET_SIDE, p / w / PACKET_SIDE);
+                    for (ray, &t) in packet.iter().zip(limits) {
+                        let p = ray.origin.x as usize;
+                        assert_eq!(t, p as f64);
+                        assert_eq!(block(p), block(packet[0].origin.x as usize));
+                        seen[p] += 1;
+                    }
+                });
+            }
+            for &p in &rays.shadow_pixel {
+                assert_eq!(seen[p as usize], 1, "{w}x{h}: pixel {p}");
+            }
+            assert_eq!(seen.iter().sum::<usize>(), rays.shadow.len());
+            let per_item = rays.shadow.len() / work_items(&rays, Measure::Shadow).max(1);
+            assert!(
+                rays.shadow.len() < 2 * CHUNK || per_item >= CHUNK / 2,
+                "{per_item}"
+            );
+        }
+    }
 }

@@ -645,6 +645,116 @@ impl World {
         })
     }
 
+    /// [`World::occluded`] for up to [`PACKET`] rays at once: `blocked[i]` is whether
+    /// anything lies along `rays[i]` with t in (0, `t_max[i]`), the answer `occluded` gives
+    /// that ray. Coherent rays (the shadow rays of a block of pixels toward one light) share
+    /// the work: a mesh's BVH is walked once for the packet ([`Bvh::traverse_packet_any`]),
+    /// a multi-object world's top level too, and a packet that misses an object's box skips
+    /// it. A ray leaves the packet as soon as it is blocked.
+    pub fn occluded_packet(&self, rays: &[Ray], t_max: &[f64], blocked: &mut [bool]) {
+        let n = rays.len();
+        assert!(
+            n <= PACKET && t_max.len() == n && blocked.len() == n,
+            "a packet of {n} rays"
+        );
+        if n == 0 {
+            return;
+        }
+        let mut limits = [0.0; PACKET];
+        let limits = &mut limits[..n];
+        limits.copy_from_slice(t_max);
+        let mut world_tri_rays = [None; PACKET];
+        let mut live = u64::MAX >> (64 - n);
+        if self.objects.len() == 1 {
+            // No world-space bounds: shadow rays start on surfaces inside the object's box,
+            // so they would skip nothing, and a mesh's walk culls a packet that misses it at
+            // its root (it also takes rays outside the f32 tests' range one by one).
+            self.object_packet_any(0, rays, limits, &mut live, &mut world_tri_rays);
+        } else {
+            let Some(packet) = PacketBounds::new(rays) else {
+                // A ray outside the f32 tests' range: the mesh walks would go ray by ray.
+                for i in 0..n {
+                    blocked[i] = self.occluded(&rays[i], t_max[i]);
+                }
+                return;
+            };
+            live = self
+                .top
+                .traverse_packet_leaves_any(&packet, limits, |slots, limits, live| {
+                    for slot in slots {
+                        self.object_packet_any(slot, rays, limits, live, &mut world_tri_rays);
+                        if *live == 0 {
+                            break;
+                        }
+                    }
+                });
+        }
+        for (i, b) in blocked.iter_mut().enumerate() {
+            *b = live & (1 << i) == 0;
+        }
+    }
+
+    /// The object in top-level slot `slot` against the rays of a packet in `live`, for t in
+    /// (0, `limits[i]`): clears the bit of each ray it blocks.
+    fn object_packet_any(
+        &self,
+        slot: usize,
+        rays: &[Ray],
+        limits: &[f64],
+        live: &mut u64,
+        world_tri_rays: &mut [Option<TriangleRay>; PACKET],
+    ) {
+        let Object::Model(m) = self.objects[slot] else {
+            let mut a = *live;
+            while a != 0 {
+                let i = a.trailing_zeros() as usize;
+                a &= a - 1;
+                let hit =
+                    self.hit_object::<true>(slot, &rays[i], 0.0, limits[i], &mut world_tri_rays[i]);
+                if hit.is_some() {
+                    *live &= !(1 << i);
+                }
+            }
+            return;
+        };
+        let model = &self.models[m as usize];
+        let mesh = &self.meshes[model.mesh as usize];
+        // The live rays in local space, packed (rays blocked by other objects stay out of the
+        // packet's bounds); `index` maps them back.
+        let mut local = [const { std::mem::MaybeUninit::<Ray>::uninit() }; PACKET];
+        let mut bounds = [0.0; PACKET];
+        let mut index = [0u8; PACKET];
+        let mut n = 0;
+        let mut a = *live;
+        while a != 0 {
+            let i = a.trailing_zeros() as usize;
+            a &= a - 1;
+            local[n].write(model.transform.ray_to_local(&rays[i]));
+            bounds[n] = limits[i];
+            index[n] = i as u8;
+            n += 1;
+        }
+        // SAFETY: the first `n` entries were written above; MaybeUninit<Ray> has Ray's layout.
+        let local: &[Ray] = unsafe { std::slice::from_raw_parts(local.as_ptr().cast::<Ray>(), n) };
+        // Each ray's triangle-test set-up, made when it first reaches a leaf.
+        let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
+        let mut blocked =
+            mesh.bvh
+                .traverse_packet_any(local, &mut bounds[..n], |j, tris, t_max| {
+                    let (tri_ray, ray32) = tri_rays[j].get_or_insert_with(|| {
+                        let tri_ray = TriangleRay::new(&local[j]);
+                        (tri_ray, TriangleRayF32::new(&tri_ray))
+                    });
+                    let mut found = None;
+                    mesh_leaf::<true>(mesh, tri_ray, ray32, tris, 0.0, t_max, &mut found)
+                });
+        while blocked != 0 {
+            let j = blocked.trailing_zeros() as usize;
+            blocked &= blocked - 1;
+            *live &= !(1 << index[j]);
+        }
+    }
+
     /// [`World::occluded`] for one of a family of coherent shadow rays (one light's, from
     /// one recursion level of a row's samples), whose last blocker `cache` remembers. That
     /// object is tested first: where a pixel's samples and its neighbours' lie in one shadow,
@@ -1363,6 +1473,161 @@ mod tests {
         let mut found = vec![None; 64];
         world.intersect_packet(&away, 0.0, f64::INFINITY, None, &mut found);
         assert!(found.iter().all(Option::is_none));
+    }
+
+    #[test]
+    fn a_shadow_packet_is_blocked_exactly_as_each_ray_alone() {
+        use crate::camera::Camera;
+        let mut next = crate::test_rng::uniform(99);
+        let mut worlds = Vec::new();
+        for (scale, offset) in [
+            (1.0, DVec3::ZERO),
+            (1e-3, DVec3::new(0.5, -0.2, 0.1)),
+            (1e4, DVec3::new(3e4, 1e3, -2e4)),
+        ] {
+            // The packet scene's models and spheres, with scene triangles and a small model
+            // flattened into the top level added.
+            let w = packet_world(scale, offset);
+            let mut models = w.models.clone();
+            let mut meshes = w.meshes.clone();
+            meshes.push(grid_mesh(2, |x, _| 0.2 * x));
+            models.push(Model {
+                transform: Transform::new(
+                    offset + DVec3::new(0.3, -0.2, -2.8) * scale,
+                    glam::DQuat::from_rotation_y(0.4),
+                    DVec3::splat(0.4 * scale),
+                ),
+                mesh: 2,
+                material: 0,
+            });
+            let triangles = (0..6)
+                .map(|i| {
+                    let c = offset + DVec3::new(i as f64 * 0.3 - 0.8, 0.4, -2.9) * scale;
+                    WorldTriangle {
+                        positions: [
+                            c,
+                            c + DVec3::new(0.2, 0.0, 0.05) * scale,
+                            c + DVec3::new(0.0, 0.25, -0.05) * scale,
+                        ],
+                        normals: [DVec3::Z; 3],
+                        tex_coords: [DVec2::ZERO; 3],
+                        materials: [0; 3],
+                    }
+                })
+                .collect();
+            let world = World::with_movers(
+                w.spheres.clone(),
+                triangles,
+                meshes,
+                models,
+                vec![],
+                (0.0, 0.0),
+            );
+            assert!(world.objects.len() > 10);
+            worlds.push((scale, offset, world));
+        }
+        // And a world of one model, which skips the top level.
+        let single = World::with_movers(
+            vec![],
+            vec![],
+            vec![grid_mesh(40, |x, y| {
+                0.3 * (9.0 * x).sin() * (7.0 * y).cos()
+            })],
+            vec![Model {
+                transform: Transform::new(
+                    DVec3::new(-0.5, -0.5, -2.0),
+                    glam::DQuat::from_rotation_x(-0.2),
+                    DVec3::ONE,
+                ),
+                mesh: 0,
+                material: 0,
+            }],
+            vec![],
+            (0.0, 0.0),
+        );
+        assert_eq!(single.objects.len(), 1);
+        worlds.push((1.0, DVec3::ZERO, single));
+
+        for (scale, offset, world) in &worlds {
+            let (scale, offset) = (*scale, *offset);
+            let camera = Camera::from_orientation(
+                offset,
+                glam::DQuat::IDENTITY,
+                1.0,
+                0.0,
+                f64::INFINITY,
+                4.0 / 3.0,
+            );
+            let (w, h) = (48.0, 36.0);
+            let (mut blocked, mut open) = (0, 0);
+            for k in 0..120 {
+                let n = [64, 64, 1, 23, 64, 40, 7, 64][k % 8];
+                let (bx, by) = ((k * 8) as f64 % w, ((k * 8) as f64 / w).floor() * 8.0 % h);
+                let light =
+                    offset + DVec3::new(next() * 2.0 - 1.0, 1.5 + next(), next() - 2.0) * scale;
+                let mut rays = Vec::new();
+                let mut limits = Vec::new();
+                for i in 0..n {
+                    let (x, y) = (bx + (i % 8) as f64 + 0.5, by + (i / 8) as f64 + 0.5);
+                    let eye = camera.ray(x, y, w, h);
+                    let start = world
+                        .intersect(&eye, 0.0, f64::INFINITY)
+                        .map_or(eye.origin + eye.dir * 3.0 * scale, |hit| eye.at(hit.t));
+                    let (ray, t_max) = match k % 4 {
+                        // A block's shadow rays to one light, offset off their surfaces as
+                        // the shader offsets them (some start on the far side).
+                        0 | 1 => {
+                            let to = light - start;
+                            let d = to.normalize();
+                            let o = start + d * 1e-6 * scale;
+                            (Ray::new(o, d), to.length())
+                        }
+                        // Mixed-sign directions from scattered origins, short or unbounded.
+                        2 => {
+                            let o = offset
+                                + DVec3::new(next() - 0.5, next() - 0.5, -2.0 - next() * 2.0)
+                                    * scale;
+                            let d = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+                            let t = if i % 2 == 0 {
+                                f64::INFINITY
+                            } else {
+                                0.7 * scale
+                            };
+                            (Ray::new(o, d.normalize()), t)
+                        }
+                        // One ray outside the f32 tests' range (axis-parallel, or far off).
+                        _ => {
+                            let to = light - start;
+                            let mut d = to.normalize();
+                            let mut o = start + d * 1e-6 * scale;
+                            if i == n / 2 {
+                                if k % 8 == 3 {
+                                    d = DVec3::NEG_Z;
+                                } else {
+                                    o.x = 1e31;
+                                }
+                            }
+                            (Ray::new(o, d), to.length())
+                        }
+                    };
+                    rays.push(ray);
+                    limits.push(t_max);
+                }
+                let mut found = vec![false; n];
+                world.occluded_packet(&rays, &limits, &mut found);
+                for i in 0..n {
+                    let alone = world.occluded(&rays[i], limits[i]);
+                    assert_eq!(found[i], alone, "scale {scale}, packet {k}, ray {i} of {n}");
+                    blocked += alone as usize;
+                    open += !alone as usize;
+                }
+            }
+            assert!(
+                blocked > 200 && open > 200,
+                "scale {scale}: {blocked} blocked, {open} open"
+            );
+        }
+        worlds[0].2.occluded_packet(&[], &[], &mut []);
     }
 
     #[test]

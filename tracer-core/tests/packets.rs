@@ -1,6 +1,7 @@
-//! Packets of eye rays (`World::intersect_packet`) against the single-ray query on the
-//! course's mesh scenes: the same hit for every ray, and `tracer bench`'s primary measure
-//! counts the same hits both ways.
+//! Packets of eye rays (`World::intersect_packet`) and of shadow rays
+//! (`World::occluded_packet`) against the single-ray queries on the course's mesh scenes: the
+//! same hit for every ray, and `tracer bench`'s primary and shadow measures count the same
+//! hits and blocked rays both ways.
 
 mod common;
 
@@ -47,6 +48,13 @@ fn eye_ray_packets_find_each_rays_own_hit_on_course_scenes() {
             trace(&scene, &rays, Measure::Primary),
             trace(&scene, &rays, Measure::PrimarySingle),
             "{file}"
+        );
+        let blocked = trace(&scene, &rays, Measure::ShadowSingle);
+        assert_eq!(trace(&scene, &rays, Measure::Shadow), blocked, "{file}");
+        assert!(
+            blocked > 0 && blocked < rays.shadow.len(),
+            "{file}: {blocked} of {} shadow rays blocked",
+            rays.shadow.len()
         );
     }
 }

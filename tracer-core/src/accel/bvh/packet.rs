@@ -13,8 +13,8 @@ use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use super::{
-    leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Node, RayF32, F32_SAFE, NO_CHILD,
-    SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH, WIDTH,
+    farther, leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Node, RayF32, F32_SAFE,
+    FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH, WIDTH,
 };
 use glam::DVec3;
 
@@ -243,32 +243,71 @@ impl Bvh {
         t_max: &mut [f64],
         mut leaf: impl FnMut(usize, Range<usize>, &mut f64),
     ) {
+        self.packet::<NEAREST_FIRST>(rays, t_max, |i, range, t| {
+            leaf(i, range, t);
+            false
+        });
+    }
+
+    /// The any-hit counterpart of [`Bvh::traverse_packet`], as [`Bvh::traverse_any`] is of
+    /// [`Bvh::traverse`]: `leaf(i, primitives, t_max)` returns true when it finds a hit for
+    /// ray `i`, which then leaves the packet (its `t_max[i]` becomes −∞), and the walk ends
+    /// when every ray has. Children are visited farthest first by the packet's entry bound.
+    /// Returns the mask of the rays `leaf` found a hit for; every other ray was handed at
+    /// least the leaves `traverse_any` would hand it, so the answers are the same.
+    #[inline(always)]
+    pub fn traverse_packet_any(
+        &self,
+        rays: &[Ray],
+        t_max: &mut [f64],
+        leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
+    ) -> u64 {
+        self.packet::<FARTHEST_FIRST>(rays, t_max, leaf)
+    }
+
+    /// [`Bvh::traverse_packet`] or [`Bvh::traverse_packet_any`] by `ORDER`; returns the rays
+    /// for which `leaf` returned true.
+    #[inline(always)]
+    fn packet<const ORDER: u8>(
+        &self,
+        rays: &[Ray],
+        t_max: &mut [f64],
+        mut leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
+    ) -> u64 {
         assert!(rays.len() <= PACKET && t_max.len() == rays.len());
-        if self.nodes.is_empty() {
-            return;
+        if self.nodes.is_empty() || rays.is_empty() {
+            return 0;
         }
         let Some(packet) = PacketBounds::new(rays) else {
+            let mut found = 0;
             for (i, ray) in rays.iter().enumerate() {
-                self.traverse(ray, &mut t_max[i], |range, t| {
-                    leaf(i, range, t);
-                    false
-                });
+                let leaf = |range, t: &mut f64| leaf(i, range, t);
+                let hit = if ORDER == FARTHEST_FIRST {
+                    self.traverse_any(ray, &mut t_max[i], leaf)
+                } else {
+                    self.traverse(ray, &mut t_max[i], leaf)
+                };
+                if hit {
+                    found |= 1 << i;
+                    t_max[i] = f64::NEG_INFINITY;
+                }
             }
-            return;
+            return found;
         };
+        let all = u64::MAX >> (64 - rays.len());
         #[cfg(target_arch = "x86_64")]
         if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2.
-            unsafe { self.traverse_packet_avx2(&packet, rays, t_max, leaf) };
-            return;
+            return all
+                & !unsafe { self.traverse_packet_avx2::<ORDER>(&packet, rays, t_max, leaf) };
         }
-        self.traverse_packet_with(
+        all & !self.traverse_packet_with::<ORDER>(
             rays,
             t_max,
             leaf,
             |node, far| packet.hit(node, far),
             |r, node, t_max| r.hit(node, t_max),
-        );
+        )
     }
 
     /// [`Bvh::traverse_packet_with`] compiled for AVX2 with the owner's leaf test, both box
@@ -278,21 +317,21 @@ impl Bvh {
     /// The CPU must support AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn traverse_packet_avx2(
+    unsafe fn traverse_packet_avx2<const ORDER: u8>(
         &self,
         packet: &PacketBounds,
         rays: &[Ray],
         t_max: &mut [f64],
-        leaf: impl FnMut(usize, Range<usize>, &mut f64),
-    ) {
+        leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
+    ) -> u64 {
         // SAFETY: this function only runs where AVX2 is available.
-        self.traverse_packet_with(
+        self.traverse_packet_with::<ORDER>(
             rays,
             t_max,
             leaf,
             |node, far| unsafe { packet.hit_avx2(node, far) },
             |r, node, t_max| unsafe { r.hit_avx2(node, t_max) },
-        );
+        )
     }
 
     /// Hands `leaf(slots, t_max)` every leaf some ray of a packet with bounds `packet` may
@@ -305,50 +344,75 @@ impl Bvh {
         t_max: &mut [f64],
         mut leaf: impl FnMut(Range<usize>, &mut [f64]),
     ) {
-        if self.nodes.is_empty() {
-            return;
-        }
+        self.packet_leaves::<NEAREST_FIRST>(packet, t_max, |range, t_max, _| leaf(range, t_max));
+    }
+
+    /// [`Bvh::traverse_packet_leaves`] for any-hit queries, farthest first: `leaf(slots,
+    /// t_max, live)` tests the rays in `live` (at first all of `t_max`'s) and clears the bit
+    /// of each ray it finds a hit for; such a ray's `t_max` becomes −∞, and the walk ends
+    /// when no ray is left. Returns the rays left.
+    pub fn traverse_packet_leaves_any(
+        &self,
+        packet: &PacketBounds,
+        t_max: &mut [f64],
+        leaf: impl FnMut(Range<usize>, &mut [f64], &mut u64),
+    ) -> u64 {
+        self.packet_leaves::<FARTHEST_FIRST>(packet, t_max, leaf)
+    }
+
+    #[inline(always)]
+    fn packet_leaves<const ORDER: u8>(
+        &self,
+        packet: &PacketBounds,
+        t_max: &mut [f64],
+        mut leaf: impl FnMut(Range<usize>, &mut [f64], &mut u64),
+    ) -> u64 {
         let all = u64::MAX >> (64 - t_max.len().clamp(1, 64));
-        self.packet_walk(
+        if self.nodes.is_empty() || t_max.is_empty() {
+            return all;
+        }
+        self.packet_walk::<ORDER>(
             t_max,
             all,
             |node, far| packet.hit(node, far),
-            |node, leaves, _, _, t_max| {
+            |node, leaves, _, _, t_max, live| {
                 let mut m = leaves;
-                while m != 0 {
+                while m != 0 && *live != 0 {
                     let c = m.trailing_zeros() as usize;
                     m &= m - 1;
                     let first = node.index[c] as usize;
-                    leaf(first..first + node.count[c] as usize, t_max);
+                    leaf(first..first + node.count[c] as usize, t_max, live);
                 }
                 None
             },
-        );
+        )
     }
 
-    /// [`Bvh::traverse_packet`]'s walk. Each ray takes its own box test (the single-ray
-    /// traversal's) only where the packet's paths part: at a node with leaf children (to
-    /// pick its leaves) and where two or more interior children are entered (to split the
-    /// packet's rays among them); elsewhere the packet test alone passes the rays down.
+    /// The walk of [`Bvh::traverse_packet`] (`ORDER` nearest first) and
+    /// [`Bvh::traverse_packet_any`] (farthest first). Each ray takes its own box test (the
+    /// single-ray traversal's) only where the packet's paths part: at a node with leaf
+    /// children (to pick its leaves) and where two or more interior children are entered (to
+    /// split the packet's rays among them); elsewhere the packet test alone passes the rays
+    /// down. A ray for which `leaf` returns true leaves the packet; returns the rays left.
     #[inline(always)]
-    fn traverse_packet_with(
+    fn traverse_packet_with<const ORDER: u8>(
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
-        mut leaf: impl FnMut(usize, Range<usize>, &mut f64),
+        mut leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
         packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
         ray_hit: impl Fn(&RayF32, &Node, f64) -> (u32, [f32; WIDTH]),
-    ) {
+    ) -> u64 {
         // Each ray's f32 set-up, made when the packet's paths first part (a packet that
         // misses everything never pays for it).
         let mut single = [const { MaybeUninit::<RayF32>::uninit() }; PACKET];
         let mut ready = false;
         let all = u64::MAX >> (64 - rays.len());
-        self.packet_walk(
+        self.packet_walk::<ORDER>(
             t_max,
             all,
             packet_hit,
-            |node, leaves, inner, active, t_max| {
+            |node, leaves, inner, active, t_max, live| {
                 if !ready {
                     for (s, ray) in single.iter_mut().zip(rays) {
                         s.write(RayF32::new(ray).expect("PacketBounds::new checked the range"));
@@ -357,7 +421,7 @@ impl Bvh {
                 }
                 let mut split = [0u64; WIDTH];
                 let mut a = active;
-                while a != 0 {
+                'rays: while a != 0 {
                     let i = a.trailing_zeros() as usize;
                     a &= a - 1;
                     // SAFETY: the first `rays.len()` entries were written above.
@@ -369,7 +433,10 @@ impl Bvh {
                         l &= l - 1;
                         if d[c] as f64 <= t_max[i] {
                             let first = node.index[c] as usize;
-                            leaf(i, first..first + node.count[c] as usize, &mut t_max[i]);
+                            if leaf(i, first..first + node.count[c] as usize, &mut t_max[i]) {
+                                *live &= !(1 << i);
+                                continue 'rays;
+                            }
                         }
                     }
                     let mut n = m & inner;
@@ -381,29 +448,32 @@ impl Bvh {
                 }
                 Some(split)
             },
-        );
+        )
     }
 
-    /// The packet walk over interior nodes, nearest child (by the packet's lower bound of
-    /// entry) first, each carrying the mask of the packet's rays that may enter it.
-    /// `per_ray(node, leaves, inner, rays, t_max)` is called where the packet enters leaf
-    /// children (`leaves`) or two or more interior ones (`inner`) and `rays` holds more than
-    /// one ray; it handles the leaves and may return, per child, the rays that enter it.
-    /// The packet's reach is the largest `t_max` after it.
+    /// The packet walk over interior nodes, in `ORDER` by the packet's lower bound of entry,
+    /// each node carrying the mask of the packet's rays that may enter it.
+    /// `per_ray(node, leaves, inner, rays, t_max, live)` is called where the packet enters
+    /// leaf children (`leaves`) or two or more interior ones (`inner`) and `rays` holds more
+    /// than one ray; it handles the leaves, may clear rays that are done from `live` (any-hit
+    /// queries: their `t_max` is set to −∞ and they are dropped from every pending subtree),
+    /// and may return, per child, the rays that enter it. The packet's reach is the largest
+    /// `t_max` after it. Returns the rays still live; the walk stops when none are.
     #[inline(always)]
-    fn packet_walk(
+    fn packet_walk<const ORDER: u8>(
         &self,
         t_max: &mut [f64],
         all: u64,
         packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
-        mut per_ray: impl FnMut(&Node, u32, u32, u64, &mut [f64]) -> Option<[u64; WIDTH]>,
-    ) {
+        mut per_ray: impl FnMut(&Node, u32, u32, u64, &mut [f64], &mut u64) -> Option<[u64; WIDTH]>,
+    ) -> u64 {
         let farthest = |t_max: &[f64]| t_max.iter().fold(f64::NEG_INFINITY, |a, &t| a.max(t));
         let mut far = farthest(t_max);
         let mut stack = [const { MaybeUninit::<(u32, f32, u64)>::uninit() }; STACK_DEPTH];
         let mut top = 0;
         let mut index = 0usize;
         let mut active = all;
+        let mut live = all;
         loop {
             let node = &self.nodes[index];
             let (mask, dist) = packet_hit(node, t_max_f32(far));
@@ -412,7 +482,18 @@ impl Bvh {
             let parts =
                 leaves != 0 || (inner & inner.wrapping_sub(1) != 0 && active & (active - 1) != 0);
             let split = if parts {
-                let split = per_ray(node, leaves, inner, active, t_max);
+                let before = live;
+                let split = per_ray(node, leaves, inner, active, t_max, &mut live);
+                if live != before {
+                    if live == 0 {
+                        return 0;
+                    }
+                    let mut gone = before & !live;
+                    while gone != 0 {
+                        t_max[gone.trailing_zeros() as usize] = f64::NEG_INFINITY;
+                        gone &= gone - 1;
+                    }
+                }
                 far = farthest(t_max);
                 split
             } else {
@@ -426,14 +507,15 @@ impl Bvh {
                     }
                 }
             }
-            let rays_of = |c: usize| split.map_or(active, |s| s[c]);
+            let rays_of = |c: usize| split.map_or(active & live, |s| s[c]);
             if inner != 0 {
                 let c = inner.trailing_zeros() as usize;
                 inner &= inner - 1;
                 let mut near = (node.index[c], dist[c], rays_of(c));
                 prefetch(&self.nodes, near.0);
                 if inner != 0 {
-                    // Two or more interior children: push all but the nearest, farthest first.
+                    // Two or more interior children: push all but the first in `ORDER`, so
+                    // that they pop in order.
                     let mut rest = [(0u32, 0f32, 0u64); WIDTH - 1];
                     let mut n = 0;
                     while inner != 0 {
@@ -441,11 +523,11 @@ impl Bvh {
                         inner &= inner - 1;
                         let mut child = (node.index[c], dist[c], rays_of(c));
                         prefetch(&self.nodes, child.0);
-                        if near.1 > child.1 {
+                        if farther::<ORDER>(near.1, child.1) {
                             std::mem::swap(&mut child, &mut near);
                         }
                         let mut i = n;
-                        while i > 0 && child.1 > rest[i - 1].1 {
+                        while i > 0 && farther::<ORDER>(child.1, rest[i - 1].1) {
                             rest[i] = rest[i - 1];
                             i -= 1;
                         }
@@ -457,21 +539,23 @@ impl Bvh {
                         top += 1;
                     }
                 }
-                if near.1 as f64 <= far {
+                if near.2 != 0 && near.1 as f64 <= far {
                     index = near.0 as usize;
                     active = near.2;
                     continue;
                 }
             }
-            // Skip subtrees that hits found since they were pushed have put out of reach.
+            // Skip subtrees that hits found since they were pushed have put out of reach,
+            // and those whose rays have all left the packet.
             loop {
                 if top == 0 {
-                    return;
+                    return live;
                 }
                 top -= 1;
                 // SAFETY: slot `top` was written by the push that raised `top` above it.
                 let (n, entry, rays) = unsafe { stack[top].assume_init() };
-                if entry as f64 <= far {
+                let rays = rays & live;
+                if rays != 0 && entry as f64 <= far {
                     index = n as usize;
                     active = rays;
                     break;
@@ -613,6 +697,78 @@ mod tests {
         assert!(PacketBounds::new(&[behind])
             .unwrap()
             .may_hit(&bvh.bounds(), f64::INFINITY));
+    }
+
+    #[test]
+    fn an_any_hit_packet_blocks_exactly_the_rays_blocked_alone() {
+        let mut next = crate::test_rng::uniform(4242);
+        let (mut blocked, mut open) = (0, 0);
+        for (scale, offset) in [(1e-4, 0.0), (1.0, -2.0), (1e4, 1e5)] {
+            let prims = boxes(1500, scale, offset, 77);
+            let bvh = Bvh::build(&prims);
+            let centre = DVec3::splat(5.0 * scale + offset);
+            for k in 0..60 {
+                // Shadow-like rays from points in the boxes' region toward one light (some
+                // blocked, some not), rays in scattered directions of mixed signs, and an
+                // axis-parallel ray (f64 fallback) in some packets; 1 to 64 rays each.
+                let n = 1 + (k * 11) % PACKET;
+                let light = centre + DVec3::new(next() - 0.5, 3.0, next() - 0.5) * 10.0 * scale;
+                let rays: Vec<(Ray, f64)> = (0..n)
+                    .map(|i| {
+                        let o = centre + DVec3::new(next(), next(), next()) * 10.0 * scale;
+                        let to = match k % 3 {
+                            0 => light - o,
+                            _ => DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5),
+                        };
+                        let mut d = to.normalize();
+                        if k % 5 == 4 && i == n / 2 {
+                            d = DVec3::Y;
+                        }
+                        let t_max = match k % 4 {
+                            0 => f64::INFINITY,
+                            1 => 2.0 * scale,
+                            _ => to.length(),
+                        };
+                        (Ray::new(o, d), t_max)
+                    })
+                    .collect();
+                let hit = |ray: &Ray, range: Range<usize>, t_max: f64| {
+                    range.into_iter().any(|s| {
+                        let p = bvh.order[s] as usize;
+                        p < prims.len() && prims[p].hit(ray, t_max).is_some()
+                    })
+                };
+                let single: Vec<bool> = rays
+                    .iter()
+                    .map(|(r, t)| bvh.traverse_any(r, &mut t.clone(), |s, t| hit(r, s, *t)))
+                    .collect();
+                let only: Vec<Ray> = rays.iter().map(|r| r.0).collect();
+                let mut limits: Vec<f64> = rays.iter().map(|r| r.1).collect();
+                let mask =
+                    bvh.traverse_packet_any(&only, &mut limits, |i, s, t| hit(&only[i], s, *t));
+                for (i, &alone) in single.iter().enumerate() {
+                    assert_eq!(
+                        mask & (1 << i) != 0,
+                        alone,
+                        "scale {scale}, packet {k}, ray {i}"
+                    );
+                    if alone {
+                        assert_eq!(limits[i], f64::NEG_INFINITY);
+                    }
+                    blocked += alone as usize;
+                    open += !alone as usize;
+                }
+                assert_eq!(mask & !(u64::MAX >> (64 - n)), 0);
+            }
+        }
+        assert!(
+            blocked > 300 && open > 300,
+            "{blocked} blocked, {open} open"
+        );
+        assert_eq!(
+            Bvh::build(&[]).traverse_packet_any(&[], &mut [], |_, _, _| true),
+            0
+        );
     }
 
     #[cfg(target_arch = "x86_64")]
