@@ -299,7 +299,7 @@ fn simulate(
     };
     let mut spent = 0.0;
     loop {
-        let targets = adaptive::plan(&sums, &counts, rules);
+        let targets = adaptive::plan(&sums, &counts, rules, None);
         if targets == counts {
             break;
         }
