@@ -107,11 +107,11 @@ const SHARE_FLOOR: f64 = 0.1;
 /// `spp_max`, and with a threshold never beyond the first level that reaches what its
 /// estimate says it needs (n · (error / threshold)²).
 ///
-/// `max_rays`, when given, caps the pass's rays below the doubling budget (a time-limited
-/// job sizes the pass that would run into its limit to the time left); the pass still
-/// spends at least one block's step unless the cap is zero or less, which plans no pass at
-/// all. The first pass (every block to `spp_min`) ignores it. Still a pure function of its
-/// arguments: without a cap the plan is exactly the uncapped one.
+/// `max_rays`, when given, replaces the doubling budget by a limit the pass stays within (a
+/// time-limited job passes the rays its time left allows): the pass spends as much of it as
+/// whole levels allow, possibly nothing (a cap of zero or less plans no pass at all). The
+/// first pass (every block to `spp_min`) ignores it. Still a pure function of its
+/// arguments: without a cap the plan is exactly the doubling one.
 pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules, max_rays: Option<f64>) -> Vec<u32> {
     let spp_max = rules.spp_max.max(1);
     let spp_min = rules.spp_min.clamp(1, spp_max);
@@ -183,12 +183,12 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules, max_rays: Option<f64>
         1.0
     };
     let doubling = (total * PASS_GROWTH).max(one_each);
-    // A cap below the doubling budget is a limit the pass must stay within (the time left),
-    // not a target to reach: the pass ends at or below it.
+    // A cap is a limit the pass must stay within (the time left), not a target to reach:
+    // the pass ends at or below it.
     let (budget, within) = match max_rays {
         Some(cap) if cap <= 0.0 => return counts.to_vec(),
-        Some(cap) if cap < doubling => (cap, true),
-        _ => (doubling, false),
+        Some(cap) => (cap, true),
+        None => (doubling, false),
     };
     let targets = |c: f64| -> Vec<u32> {
         counts
@@ -566,8 +566,10 @@ mod tests {
             (8192.0..=8192.0 + 2.0 * 64.0 * 48.0).contains(&full),
             "{full}"
         );
-        // A cap above the doubling budget changes nothing.
-        assert_eq!(plan(&sums, &counts, RULES, Some(2.0 * full)), doubling);
+        // A cap above the doubling budget is spent too (within it).
+        let more = plan(&sums, &counts, RULES, Some(2.0 * full));
+        let spent = pass_rays(&sums, &counts, &more);
+        assert!(spent > full && spent <= 2.0 * full, "{spent} {more:?}");
         // Half of it: the pass stays within that, still on the noisiest block first.
         let capped = plan(&sums, &counts, RULES, Some(full / 2.0));
         let spent = pass_rays(&sums, &counts, &capped);
