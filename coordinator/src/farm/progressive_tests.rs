@@ -329,11 +329,7 @@ fn the_pass_that_would_run_into_the_time_limit_is_sized_to_end_before_it() {
     );
     // More samples by the limit than the doubling passes had when they passed it.
     let free_passes = farm.convergence(free.id).unwrap().passes;
-    let free_by_limit = free_passes
-        .iter()
-        .filter(|p| p.wall_s < limit)
-        .last()
-        .unwrap();
+    let free_by_limit = free_passes.iter().rfind(|p| p.wall_s < limit).unwrap();
     assert!(
         info.spp_mean.unwrap() > free_by_limit.spp_mean,
         "{:?} against {free_by_limit:?}",
