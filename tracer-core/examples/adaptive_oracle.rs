@@ -108,33 +108,10 @@ fn parse() -> Result<Args, String> {
     Ok(args)
 }
 
-/// Reads a little-endian colour PFM as `Image::to_pfm` writes it (rows bottom to top).
+/// Reads a PFM as `Image::to_pfm` writes it.
 fn read_pfm(path: &Path) -> Result<Image, String> {
     let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let mut fields = Vec::new();
-    let mut at = 0;
-    // Three header lines: "PF", "W H", the scale.
-    for _ in 0..3 {
-        let end = at
-            + bytes[at..]
-                .iter()
-                .position(|&b| b == b'\n')
-                .ok_or("short PFM")?;
-        fields.push(String::from_utf8_lossy(&bytes[at..end]).to_string());
-        at = end + 1;
-    }
-    let size: Vec<u32> = fields[1]
-        .split_whitespace()
-        .map(|v| v.parse().map_err(|_| "bad PFM size".to_string()))
-        .collect::<Result<_, _>>()?;
-    let (w, h) = (size[0], size[1]);
-    let floats: Vec<f32> = bytes[at..]
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
-        .collect();
-    let row = 3 * w as usize;
-    let pixels: Vec<f32> = floats.chunks_exact(row).rev().flatten().copied().collect();
-    Image::from_pixels(w, h, pixels).map_err(|e| e.to_string())
+    Image::from_pfm_bytes(&bytes).map_err(|e| format!("{}: {e}", path.display()))
 }
 
 /// The strata every render here draws from: those of a progressive job whose `spp_max` is
@@ -299,7 +276,7 @@ fn simulate(
     };
     let mut spent = 0.0;
     loop {
-        let targets = adaptive::plan(&sums, &counts, rules);
+        let targets = adaptive::plan(&sums, &counts, rules, None);
         if targets == counts {
             break;
         }

@@ -106,22 +106,23 @@ const SHARE_FLOOR: f64 = 0.1;
 /// (×2) and at most two from there (×4; its estimate is noisy before), never beyond
 /// `spp_max`, and with a threshold never beyond the first level that reaches what its
 /// estimate says it needs (n · (error / threshold)²).
-pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
+///
+/// `max_rays`, when given, replaces the doubling budget by a limit the pass stays within (a
+/// time-limited job passes the rays its time left allows): the pass spends as much of it as
+/// whole levels allow, possibly nothing (a cap of zero or less plans no pass at all). The
+/// first pass (every block to `spp_min`) ignores it. Still a pure function of its
+/// arguments: without a cap the plan is exactly the doubling one.
+pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules, max_rays: Option<f64>) -> Vec<u32> {
     let spp_max = rules.spp_max.max(1);
     let spp_min = rules.spp_min.clamp(1, spp_max);
     let pixels = |b: usize| block_rect(sums.width, sums.height, b).pixel_count() as f64;
     // (count, cap, share) of each block still sampling; None for a done one.
     let mut open: Vec<Option<(u32, u32, f64)>> = Vec::with_capacity(counts.len());
     // Each block's cost of one more sample per pixel (its rays per sample × its pixels).
-    let mut cost = vec![0.0; counts.len()];
+    let cost = sample_costs(sums, counts);
     let (mut total, mut one_each) = (0.0, 0.0);
     for (b, &n) in counts.iter().enumerate() {
         let p = pixels(b);
-        cost[b] = p * if n > 0 {
-            (sums.block_rays(b) / (n as f64 * p)).max(1.0)
-        } else {
-            1.0
-        };
         total += cost[b] * n as f64;
         one_each += cost[b];
         if n < spp_min {
@@ -181,7 +182,14 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
         // Every open block looks flat: share alike.
         1.0
     };
-    let budget = (total * PASS_GROWTH).max(one_each);
+    let doubling = (total * PASS_GROWTH).max(one_each);
+    // A cap is a limit the pass must stay within (the time left), not a target to reach:
+    // the pass ends at or below it.
+    let (budget, within) = match max_rays {
+        Some(cap) if cap <= 0.0 => return counts.to_vec(),
+        Some(cap) => (cap, true),
+        None => (doubling, false),
+    };
     let targets = |c: f64| -> Vec<u32> {
         counts
             .iter()
@@ -209,6 +217,7 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
     };
     // The smallest c that spends the budget, by bisection (a fixed number of steps on f64:
     // the same c on every machine); if even every cap does not, every open block to its cap.
+    // Within a limit: the largest c that does not exceed it (possibly nothing at all).
     let capped = targets(f64::INFINITY);
     if spent(&capped) <= budget {
         return capped;
@@ -226,7 +235,36 @@ pub fn plan(sums: &SumImage, counts: &[u32], rules: Rules) -> Vec<u32> {
             lo = mid;
         }
     }
-    targets(hi)
+    let planned = targets(hi);
+    if within && spent(&planned) > budget {
+        targets(lo)
+    } else {
+        planned
+    }
+}
+
+/// Each block's cost of one more sample per pixel, in rays: its rays per sample so far (at
+/// least one; one before it has samples) × its pixels.
+fn sample_costs(sums: &SumImage, counts: &[u32]) -> Vec<f64> {
+    (counts.iter().enumerate())
+        .map(|(b, &n)| {
+            let p = block_rect(sums.width, sums.height, b).pixel_count() as f64;
+            p * if n > 0 {
+                (sums.block_rays(b) / (n as f64 * p)).max(1.0)
+            } else {
+                1.0
+            }
+        })
+        .collect()
+}
+
+/// The rays a pass from `counts` to `targets` is expected to trace, priced as [`plan`]
+/// prices samples (each block at its rays per sample so far).
+pub fn pass_rays(sums: &SumImage, counts: &[u32], targets: &[u32]) -> f64 {
+    let cost = sample_costs(sums, counts);
+    (targets.iter().zip(counts).zip(&cost))
+        .map(|((&t, &n), c)| t.saturating_sub(n) as f64 * c)
+        .sum()
 }
 
 /// The sample count a block steps up to from `n`: the next power of two (capped at
@@ -333,6 +371,11 @@ impl SumImage {
         } else {
             num / den
         }
+    }
+
+    /// The rays every pixel's samples traced so far.
+    pub fn rays(&self) -> f64 {
+        self.data.iter().skip(5).step_by(SUMS).sum()
     }
 
     /// The rays block `block`'s samples traced so far.
@@ -485,14 +528,14 @@ mod tests {
     #[test]
     fn the_first_pass_brings_every_block_to_spp_min() {
         let sums = SumImage::new(20, 9);
-        assert_eq!(plan(&sums, &[0; 6], RULES), [4; 6]);
+        assert_eq!(plan(&sums, &[0; 6], RULES, None), [4; 6]);
     }
 
     #[test]
     fn a_pass_doubles_the_image_s_samples_where_the_noise_is() {
         // Block 0 noisiest, block 3 flat.
         let sums = spread_sums(16, [0.4, 0.2, 0.1, 0.0]);
-        let targets = plan(&sums, &[16; 4], RULES);
+        let targets = plan(&sums, &[16; 4], RULES, None);
         let added: u32 = targets.iter().map(|t| t - 16).sum();
         // As many samples as the image has (4 × 16 per pixel), give or take one block's step.
         assert!((64..=66).contains(&added), "{targets:?}");
@@ -508,8 +551,41 @@ mod tests {
             "at most x4 per pass: {targets:?}"
         );
         // Rough estimates (below 8 samples) at most double.
-        let early = plan(&spread_sums(4, [0.4, 0.0, 0.0, 0.0]), &[4; 4], RULES);
+        let early = plan(&spread_sums(4, [0.4, 0.0, 0.0, 0.0]), &[4; 4], RULES, None);
         assert_eq!(early[0], 8, "{early:?}");
+    }
+
+    #[test]
+    fn a_ray_cap_shrinks_the_pass_and_keeps_it_where_the_noise_is() {
+        let sums = spread_sums(16, [0.4, 0.2, 0.1, 0.0]);
+        let counts = [16; 4];
+        let doubling = plan(&sums, &counts, RULES, None);
+        let full = pass_rays(&sums, &counts, &doubling);
+        // The image has 32 × 8 pixels × 16 samples × 2 rays: the pass doubles that.
+        assert!(
+            (8192.0..=8192.0 + 2.0 * 64.0 * 48.0).contains(&full),
+            "{full}"
+        );
+        // A cap above the doubling budget is spent too (within it).
+        let more = plan(&sums, &counts, RULES, Some(2.0 * full));
+        let spent = pass_rays(&sums, &counts, &more);
+        assert!(spent > full && spent <= 2.0 * full, "{spent} {more:?}");
+        // Half of it: the pass stays within that, still on the noisiest block first.
+        let capped = plan(&sums, &counts, RULES, Some(full / 2.0));
+        let spent = pass_rays(&sums, &counts, &capped);
+        assert!(spent > 0.0 && spent <= full / 2.0, "{spent} {capped:?}");
+        assert!(capped[0] > 16 && capped[0] >= capped[1], "{capped:?}");
+        assert!(
+            capped.iter().zip(&doubling).all(|(c, d)| c <= d),
+            "{capped:?}"
+        );
+        // Nothing left to spend: no pass.
+        assert_eq!(plan(&sums, &counts, RULES, Some(0.0)), counts);
+        // The first pass goes to spp_min whatever the cap.
+        assert_eq!(
+            plan(&SumImage::new(20, 9), &[0; 6], RULES, Some(0.0)),
+            [4; 6]
+        );
     }
 
     #[test]
@@ -530,7 +606,7 @@ mod tests {
         }
         let (a, b) = (sums.block_error(0, 16), sums.block_error(1, 16));
         assert!((a - b).abs() < 1e-12, "same mean |A - B|: {a} {b}");
-        let targets = plan(&sums, &[16; 4], RULES);
+        let targets = plan(&sums, &[16; 4], RULES, None);
         assert!(targets[0] > targets[1], "{targets:?}");
     }
 
@@ -544,13 +620,13 @@ mod tests {
         // Relative errors 0.2, 0.1, 0.05 and 0 after 16 samples: blocks 1 to 3 are quiet;
         // block 0 needs 16 · (0.2 / 0.15)² = 28.4 samples to reach the threshold: the first
         // level past that is 32, less than the 64 the pass would give it.
-        assert_eq!(plan(&sums, &[16; 4], rules), [32, 16, 16, 16]);
+        assert_eq!(plan(&sums, &[16; 4], rules, None), [32, 16, 16, 16]);
         // At spp_max a block is done whatever its noise.
         let capped = Rules {
             spp_max: 16,
             ..RULES
         };
-        assert_eq!(plan(&sums, &[16; 4], capped), [16; 4]);
+        assert_eq!(plan(&sums, &[16; 4], capped, None), [16; 4]);
     }
 
     #[test]

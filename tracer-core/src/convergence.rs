@@ -13,6 +13,10 @@ pub struct Measurement {
     pub rmse: f64,
     pub rel_mse: f64,
     pub mean_flip: f64,
+    /// RMSE and relMSE of the linear f32 image against a linear reference, where a report
+    /// has both: without the 8-bit quantisation, which adds an error floor no sampling lowers.
+    pub rmse_linear: Option<f64>,
+    pub rel_mse_linear: Option<f64>,
 }
 
 /// Least-squares slope of ln y against ln x; None with fewer than two usable points or no

@@ -31,6 +31,8 @@ pub enum ImageError {
     },
     #[error("cannot decode the image: {0}")]
     Decode(image::ImageError),
+    #[error("not a PFM as Tessera writes it: {0}")]
+    Pfm(&'static str),
 }
 
 /// The file formats an [`Image`] is written in, named by their usual extension (lower case
@@ -255,6 +257,53 @@ impl Image {
         }
     }
 
+    /// Decodes a little-endian colour PFM as [`Image::to_pfm`] writes it (`PF`, a negative
+    /// scale, rows bottom to top): the linear f32 pixels, bit for bit.
+    pub fn from_pfm_bytes(bytes: &[u8]) -> Result<Image, ImageError> {
+        let mut lines = Vec::with_capacity(3);
+        let mut at = 0;
+        // Three header lines: "PF", "W H", the scale.
+        for _ in 0..3 {
+            let end = (bytes.get(at..).unwrap_or_default().iter())
+                .position(|&b| b == b'\n')
+                .ok_or(ImageError::Pfm("its header is cut short"))?;
+            lines.push(std::str::from_utf8(&bytes[at..at + end]).unwrap_or(""));
+            at += end + 1;
+        }
+        if lines[0] != "PF" {
+            return Err(ImageError::Pfm("it does not start with PF (colour)"));
+        }
+        if !lines[2].parse::<f32>().is_ok_and(|scale| scale < 0.0) {
+            return Err(ImageError::Pfm("its scale is not negative (little-endian)"));
+        }
+        let size: Vec<u32> = lines[1]
+            .split_whitespace()
+            .map(|v| {
+                v.parse()
+                    .map_err(|_| ImageError::Pfm("its size is not two numbers"))
+            })
+            .collect::<Result<_, _>>()?;
+        let [width, height] = size[..] else {
+            return Err(ImageError::Pfm("its size is not two numbers"));
+        };
+        let row = 3 * width as usize;
+        let body = &bytes[at..];
+        let floats_needed = row.checked_mul(height as usize);
+        if floats_needed.and_then(|n| n.checked_mul(4)) != Some(body.len()) {
+            return Err(ImageError::Pfm("its pixels do not fill its size"));
+        }
+        let floats: Vec<f32> = body
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+            .collect();
+        let pixels = if row == 0 {
+            Vec::new()
+        } else {
+            floats.chunks_exact(row).rev().flatten().copied().collect()
+        };
+        Image::from_pixels(width, height, pixels)
+    }
+
     /// Decodes an 8-bit image (PNG) into linear floats value/255, as the course's loader does.
     pub fn from_png_bytes(bytes: &[u8]) -> Result<Image, ImageError> {
         let decoded = image::load_from_memory(bytes).map_err(ImageError::Decode)?;
@@ -397,6 +446,15 @@ mod tests {
         let top_first: Vec<f32> = floats.chunks_exact(15).rev().flatten().copied().collect();
         assert_eq!(bits(&top_first), bits(&img.pixels));
         assert_eq!(Image::new(0, 0).to_pfm(), b"PF\n0 0\n-1.0\n");
+        let back = Image::from_pfm_bytes(&bytes).unwrap();
+        assert_eq!((back.width, back.height), (5, 3));
+        assert_eq!(bits(&back.pixels), bits(&img.pixels));
+        // Cut short, grey, big-endian or with a bad size: errors, not images.
+        assert!(Image::from_pfm_bytes(&bytes[..bytes.len() - 1]).is_err());
+        assert!(Image::from_pfm_bytes(&bytes[..6]).is_err());
+        assert!(Image::from_pfm_bytes(b"Pf\n1 1\n-1.0\n\0\0\0\0").is_err());
+        assert!(Image::from_pfm_bytes(b"PF\n1 1\n1.0\n\0\0\0\0\0\0\0\0\0\0\0\0").is_err());
+        assert!(Image::from_pfm_bytes(b"PF\n1\n-1.0\n").is_err());
     }
 
     #[test]

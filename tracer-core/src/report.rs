@@ -118,8 +118,12 @@ pub fn timed_render(
 
 /// Prints one measurement as a progress line.
 pub fn print_row(row: &Measurement) {
+    let linear = match (row.rmse_linear, row.rel_mse_linear) {
+        (Some(r), Some(m)) => format!("; linear f32: RMSE {r:.5}, relMSE {m:.5}"),
+        _ => String::new(),
+    };
     eprintln!(
-        "{}, {} spp: {:.3} s, RMSE {:.5}, relMSE {:.5}, FLIP {:.4}",
+        "{}, {} spp: {:.3} s, RMSE {:.5}, relMSE {:.5}, FLIP {:.4}{linear}",
         row.config, row.spp, row.seconds, row.rmse, row.rel_mse, row.mean_flip
     );
 }
@@ -139,7 +143,32 @@ pub fn measure(
         rmse: rmse(image, reference)?,
         rel_mse: rel_mse(image, reference)?,
         mean_flip: mean_flip(image, reference)?,
+        rmse_linear: None,
+        rel_mse_linear: None,
     })
+}
+
+/// Adds to `row` the error of the linear f32 `image` against the linear `reference`.
+pub fn with_linear(
+    row: Measurement,
+    image: &Image,
+    reference: &Image,
+) -> Result<Measurement, ReportError> {
+    Ok(Measurement {
+        rmse_linear: Some(rmse(image, reference)?),
+        rel_mse_linear: Some(rel_mse(image, reference)?),
+        ..row
+    })
+}
+
+/// Whether any row has the linear columns (a report prints them only then).
+fn has_linear(rows: &[Measurement]) -> bool {
+    rows.iter().any(|r| r.rmse_linear.is_some())
+}
+
+/// A linear column's value, empty where the row has none.
+fn linear_field(value: Option<f64>, digits: usize) -> String {
+    value.map_or(String::new(), |v| format!("{v:.digits$}"))
 }
 
 /// Writes the three report files into `dir`, creating it.
@@ -173,9 +202,15 @@ fn csv_field(text: &str) -> String {
 }
 
 fn csv(rows: &[Measurement]) -> String {
-    let mut out = String::from("config,spp,seconds,rmse,rel_mse,mean_flip\n");
+    let linear = has_linear(rows);
+    let mut out = String::from("config,spp,seconds,rmse,rel_mse,mean_flip");
+    out += if linear {
+        ",rmse_linear,rel_mse_linear\n"
+    } else {
+        "\n"
+    };
     for r in rows {
-        let _ = writeln!(
+        let _ = write!(
             out,
             "{},{},{:.6},{:.6},{:.6},{:.6}",
             csv_field(&r.config),
@@ -185,6 +220,15 @@ fn csv(rows: &[Measurement]) -> String {
             r.rel_mse,
             r.mean_flip
         );
+        if linear {
+            let _ = write!(
+                out,
+                ",{},{}",
+                linear_field(r.rmse_linear, 6),
+                linear_field(r.rel_mse_linear, 6)
+            );
+        }
+        out.push('\n');
     }
     out
 }
@@ -200,24 +244,44 @@ fn configs(rows: &[Measurement]) -> Vec<String> {
 }
 
 fn markdown(meta: &ReportMeta, rows: &[Measurement]) -> String {
+    let linear = has_linear(rows);
     let mut out = format!(
         "# Error against time: {}\n\n{}×{}; reference: {}.\n\n{}\n\n\
          Metrics against the reference: RMSE over linear RGB clamped to [0,1]; relMSE = mean of \
          (x − ref)² / (ref² + ε) with ε = {REL_MSE_EPSILON}; mean FLIP (NVIDIA's perceptual \
-         metric, 8-bit images, 67 pixels per degree).\n\n\
-         | config | spp | seconds | RMSE | relMSE | mean FLIP |\n|---|---:|---:|---:|---:|---:|\n",
+         metric, 8-bit images, 67 pixels per degree).",
         meta.scene.display(),
         meta.width,
         meta.height,
         meta.reference,
         meta.notes
     );
+    if linear {
+        out += " \"f32\" columns: the same RMSE and relMSE of the linear f32 image against the \
+                linear f32 reference, without the 8-bit quantisation (which adds an error floor \
+                no sampling lowers).";
+    }
+    out += "\n\n| config | spp | seconds | RMSE | relMSE | mean FLIP |";
+    out += if linear {
+        " RMSE (f32) | relMSE (f32) |\n|---|---:|---:|---:|---:|---:|---:|---:|\n"
+    } else {
+        "\n|---|---:|---:|---:|---:|---:|\n"
+    };
     for r in rows {
-        let _ = writeln!(
+        let _ = write!(
             out,
             "| {} | {} | {:.3} | {:.5} | {:.5} | {:.4} |",
             r.config, r.spp, r.seconds, r.rmse, r.rel_mse, r.mean_flip
         );
+        if linear {
+            let _ = write!(
+                out,
+                " {} | {} |",
+                linear_field(r.rmse_linear, 5),
+                linear_field(r.rel_mse_linear, 5)
+            );
+        }
+        out.push('\n');
     }
     out += "\nFitted slope of log RMSE against log time (Monte Carlo theory: about −0.5 once \
             noise dominates; aliasing and bias flatten it at low sample counts):\n\n";
@@ -363,6 +427,46 @@ mod tests {
         assert_eq!(super::tick_label(0.0123), "0.012");
         assert_eq!(super::tick_label(2.0), "2.0");
         assert_eq!(super::tick_label(40.0), "40");
+    }
+
+    #[test]
+    fn linear_columns_appear_only_when_a_row_has_them() {
+        let row = crate::convergence::Measurement {
+            config: "farm".into(),
+            spp: 4,
+            seconds: 0.5,
+            rmse: 0.02,
+            rel_mse: 0.001,
+            mean_flip: 0.1,
+            rmse_linear: None,
+            rel_mse_linear: None,
+        };
+        let plain = super::csv(std::slice::from_ref(&row));
+        assert_eq!(
+            plain,
+            "config,spp,seconds,rmse,rel_mse,mean_flip\nfarm,4,0.500000,0.020000,0.001000,0.100000\n"
+        );
+        let linear = crate::convergence::Measurement {
+            rmse_linear: Some(0.015),
+            rel_mse_linear: Some(0.0008),
+            ..row.clone()
+        };
+        let both = super::csv(&[row.clone(), linear.clone()]);
+        let lines: Vec<&str> = both.lines().collect();
+        assert!(lines[0].ends_with(",rmse_linear,rel_mse_linear"), "{both}");
+        assert!(lines[1].ends_with(",0.100000,,"), "{both}");
+        assert!(lines[2].ends_with(",0.015000,0.000800"), "{both}");
+        let meta = super::ReportMeta {
+            scene: "s.scene".into(),
+            width: 2,
+            height: 2,
+            reference: "r".into(),
+            notes: "n".into(),
+        };
+        let md = super::markdown(&meta, &[linear]);
+        assert!(md.contains("| RMSE (f32) | relMSE (f32) |"), "{md}");
+        assert!(md.contains("| 0.1000 | 0.01500 | 0.00080 |"), "{md}");
+        assert!(!super::markdown(&meta, &[row]).contains("(f32)"));
     }
 
     #[test]

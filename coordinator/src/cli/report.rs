@@ -11,9 +11,9 @@ use protocol::{JobSpec, JobState, DEFAULT_TILE_SIZE};
 use tracer_core::cli_args::load_scene;
 use tracer_core::convergence::Measurement;
 use tracer_core::report::{
-    measure, print_row, reference_image, timed_render, write_report, ReportMeta,
+    measure, print_row, reference_image, timed_render, with_linear, write_report, ReportMeta,
 };
-use tracer_core::{Image, RenderSettings};
+use tracer_core::{Image, ImageFormat, RenderSettings};
 use worker::available_cores;
 
 use super::submit::{collect_submission, describe};
@@ -115,8 +115,18 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
         &pool,
     )
     .map_err(Failure::failed)?;
+    // A rendered reference is linear f32: the linear columns measure against it (a PNG
+    // given as the reference has no linear pixels to offer).
+    let reference_linear = args.reference.is_none().then(|| reference.clone());
     // Compared as delivered, like every measured image.
     let reference = as_delivered(&reference)?;
+    let measure_both = |config: &str, spp: u32, seconds: f64, delivered: &Image, linear: &Image| {
+        let row = measure(config, spp, seconds, delivered, &reference)?;
+        match &reference_linear {
+            Some(lin) => with_linear(row, linear, lin),
+            None => Ok(row),
+        }
+    };
 
     let mut rows: Vec<Measurement> = Vec::new();
     let mut record = |row: Measurement| {
@@ -133,7 +143,7 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
             };
             let (image, seconds) = timed_render(&scene, &s, &pool).map_err(Failure::failed)?;
             record(
-                measure(&config, spp, seconds, &as_delivered(&image)?, &reference)
+                measure_both(&config, spp, seconds, &as_delivered(&image)?, &image)
                     .map_err(Failure::failed)?,
             );
         }
@@ -158,15 +168,22 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
                     adaptive: None,
                 };
                 match render_through(&farm, &args.scene, spec).await {
-                    Ok((image, seconds, _)) => out.push((spp, (image, seconds), None)),
+                    Ok((image, seconds, info)) => {
+                        // Its render time: first lease to image stored.
+                        let rendering = info.elapsed_s.unwrap_or(seconds);
+                        out.push((spp, (image, seconds), None, rendering));
+                    }
                     Err(e) => {
                         result = Err(e);
                         break;
                     }
                 }
             }
-            // The same wall time, spent where the error estimate says it is needed.
-            let uniform: Vec<f64> = out.iter().map(|(_, (_, s), _)| *s).collect();
+            // The same wall time, spent where the error estimate says it is needed. The
+            // time limit counts from the job's first lease, so it is the uniform job's time
+            // from its first lease to its stored image: submission, upload and download
+            // then cost both jobs alike, and the two rows' seconds compare.
+            let uniform: Vec<f64> = out.iter().map(|o| o.3).collect();
             for (&spp, &seconds) in args.spp.iter().zip(&uniform) {
                 let Some(threshold) = args.adaptive.filter(|_| result.is_ok()) else {
                     break;
@@ -188,7 +205,7 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
                 match render_through(&farm, &args.scene, spec).await {
                     Ok((image, seconds, info)) => {
                         let mean = info.spp_mean.unwrap_or(0.0);
-                        out.push((spp, (image, seconds), Some(mean)));
+                        out.push((spp, (image, seconds), Some(mean), seconds));
                     }
                     Err(e) => result = Err(e),
                 }
@@ -196,16 +213,16 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
             farm.shutdown().await;
             result.map(|()| out)
         })?;
-        for (spp, (image, seconds), adaptive) in measured {
+        for (spp, (image, seconds), adaptive, _) in measured {
             let row = match adaptive {
-                None => measure(&config, spp, seconds, &image, &reference),
+                None => measure_both(&config, spp, seconds, &image.png, &image.linear),
                 // Labelled by the uniform run it matches in time; spp is its mean.
-                Some(mean) => measure(
+                Some(mean) => measure_both(
                     &format!("{config}, adaptive {}", args.adaptive.unwrap_or_default()),
                     mean.round() as u32,
                     seconds,
-                    &image,
-                    &reference,
+                    &image.png,
+                    &image.linear,
                 ),
             };
             record(row.map_err(Failure::failed)?);
@@ -223,8 +240,10 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
              submitting the scene and its assets over HTTP to holding the finished PNG. \
              \"in-process\" is the tracer alone on the same threads. \"adaptive X\" rows are \
              progressive jobs (noise threshold X, 8..4x the largest spp) whose time limit is the \
-             wall time of the uniform run of the same position: their spp is the mean. Every \
-             image, the reference included, is compared as the 8-bit PNG a user gets.",
+             render time (first lease to stored image) of the uniform run of the same position: \
+             their spp is the mean. Every image, the reference included, is compared as the \
+             8-bit PNG a user gets; a rendered reference also gives the f32 columns, each \
+             image's linear pixels (the job's PFM, fetched after its time is taken).",
             args.tile_size
         ),
     };
@@ -236,13 +255,20 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
     Ok(())
 }
 
+/// A farm job's image: the PNG a user gets, decoded, and the linear f32 pixels.
+struct FarmImage {
+    png: Image,
+    linear: Image,
+}
+
 /// Submits one job to the farm, waits for it and returns the decoded image with the wall time
-/// from submission to download, and the finished job.
+/// from submission to download of the PNG, and the finished job. The linear image is fetched
+/// after the time is taken.
 async fn render_through(
     farm: &EmbeddedFarm,
     scene: &std::path::Path,
     spec: JobSpec,
-) -> Result<(Image, f64, protocol::JobInfo), Failure> {
+) -> Result<(FarmImage, f64, protocol::JobInfo), Failure> {
     let submission = collect_submission(scene, spec)?;
     let client = farm.client();
     let started = Instant::now();
@@ -264,6 +290,11 @@ async fn render_through(
     }
     let png = client.image(job.id).await.map_err(describe)?;
     let seconds = started.elapsed().as_secs_f64();
-    let image = Image::from_png_bytes(&png).map_err(Failure::failed)?;
-    Ok((image, seconds, finished))
+    let png = Image::from_png_bytes(&png).map_err(Failure::failed)?;
+    let pfm = client
+        .image_in(job.id, None, ImageFormat::Pfm)
+        .await
+        .map_err(describe)?;
+    let linear = Image::from_pfm_bytes(&pfm).map_err(Failure::failed)?;
+    Ok((FarmImage { png, linear }, seconds, finished))
 }

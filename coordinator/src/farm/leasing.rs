@@ -32,6 +32,13 @@ impl Farm {
             return Ok(None);
         };
         let id = state.grant(job_id, tile, worker_id, now, timeout)?;
+        if let Some(progress) = state
+            .jobs
+            .get_mut(&job_id)
+            .and_then(|j| j.progress.as_mut())
+        {
+            progress.leased(now);
+        }
         self.metrics.leases_granted.fetch_add(1, Ordering::Relaxed);
         let granted = self.describe(&state, id, &state.leases[&id]);
         drop(state);

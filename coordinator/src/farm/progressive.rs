@@ -39,7 +39,44 @@ pub struct Progress {
     pub passes: Vec<PassInfo>,
     /// The current pass's finished tiles: their new sums, merged when the pass ends.
     pub pending: HashMap<u32, Vec<f64>>,
+    /// How fast the passes render, for sizing the pass that would run into a time limit.
+    pub timing: PassTiming,
 }
+
+/// The passes' render time and rays since this coordinator took the job over. Render time
+/// runs from a pass's first lease to its end: the job's start-up (the workers loading the
+/// scene before their first lease) and the gaps between passes are left out of the rate, so
+/// it does not err low as a rate over the job's whole wall time did (that ended time-limited
+/// jobs early); the gaps are counted on their own.
+#[derive(Debug, Default, Clone)]
+pub struct PassTiming {
+    /// When the current pass's first tile was leased.
+    pub pass_started_ms: Option<u64>,
+    /// When the last pass ended.
+    pub last_end_ms: Option<u64>,
+    /// Finished passes' render time and the rays they traced.
+    pub render_ms: u64,
+    pub rays: f64,
+    /// Time from one pass's end to the next one's first lease, summed, and how many.
+    pub gap_ms: u64,
+    pub gaps: u32,
+}
+
+/// The share of the time left that the pass sized to it may plan for: the rate is measured
+/// on earlier, larger passes and the tiles of a pass finish unevenly at its end.
+const TIME_MARGIN: f64 = 0.9;
+
+/// A time-limited job's pass may add up to this multiple of the image's rays (passes
+/// triple instead of doubling): each pass costs leases, sums up and down and a pass end
+/// (at equal samples six doubling passes took 1.46 s where one took 1.2, cornell_box), and
+/// the pass that would run into the limit is sized to the time left, so a large pass is
+/// no longer cut short at the limit.
+const TIMED_GROWTH: f64 = 2.0;
+
+/// A pass the time left cannot make at least this fraction of the image's rays so far is
+/// not started: it would be mostly per-pass overhead (leases, sums up and down, the pass
+/// end), and the job ends with the image it has.
+const MIN_PASS: f64 = 0.125;
 
 /// Magic and version of the sums file.
 const MAGIC: &[u8; 8] = b"TSUMS\0\0\x02";
@@ -63,8 +100,9 @@ impl Progress {
             targets: Vec::new(),
             passes: Vec::new(),
             pending: HashMap::new(),
+            timing: PassTiming::default(),
         };
-        progress.plan();
+        progress.plan(None);
         Some(progress)
     }
 
@@ -77,9 +115,46 @@ impl Progress {
         }
     }
 
-    /// Plans the next pass from the sums (a pure function of them: every farm plans alike).
-    fn plan(&mut self) {
-        self.targets = adaptive::plan(&self.sums, &self.counts, self.plan_rules());
+    /// Plans the next pass from the sums and `max_rays` (a pure function of them: every farm
+    /// plans alike; without a time limit there is no cap).
+    fn plan(&mut self, max_rays: Option<f64>) {
+        self.targets = adaptive::plan(&self.sums, &self.counts, self.plan_rules(), max_rays);
+    }
+
+    /// A tile of the current pass was leased at `now_ms`: the pass's render time starts
+    /// with its first.
+    pub fn leased(&mut self, now_ms: u64) {
+        let t = &mut self.timing;
+        if t.pass_started_ms.is_none() {
+            t.pass_started_ms = Some(now_ms);
+            if let Some(end) = t.last_end_ms {
+                t.gap_ms += now_ms.saturating_sub(end);
+                t.gaps += 1;
+            }
+        }
+    }
+
+    /// The most rays the next pass may plan when the job has a time limit and `wall_ms` of
+    /// it are gone: the passes' rate × the time left (less the mean gap before a pass's
+    /// first lease) × [`TIME_MARGIN`], at most [`TIMED_GROWTH`] × the image's rays, or zero
+    /// (no pass) below [`MIN_PASS`] of them. None without a limit or before a pass was
+    /// timed: the doubling budget.
+    fn pass_cap(&self, wall_ms: u64) -> Option<f64> {
+        let limit_ms = self.rules.time_limit_s? * 1000.0;
+        let t = &self.timing;
+        if t.render_ms == 0 || t.rays <= 0.0 {
+            return None;
+        }
+        let rate = t.rays / t.render_ms as f64;
+        let gap = if t.gaps > 0 {
+            t.gap_ms as f64 / t.gaps as f64
+        } else {
+            0.0
+        };
+        let left = limit_ms - wall_ms as f64 - gap;
+        let image = self.sums.rays();
+        let cap = (rate * left * TIME_MARGIN).min(TIMED_GROWTH * image);
+        Some(if cap < MIN_PASS * image { 0.0 } else { cap })
     }
 
     /// Whether block `b` samples in the current pass.
@@ -155,8 +230,18 @@ impl Progress {
     /// depends on the clock, so a time-limited image is not reproducible; without a time
     /// limit every tile lands and the image depends on the sums alone. Returns None when a
     /// cut-short pass finished no block (nothing to record).
-    pub fn finish_pass(&mut self, grid: &TileGrid, wall_ms: u64, time_up: bool) -> Option<bool> {
+    ///
+    /// `now_ms` (the pass's end) closes the pass's render time; with a time limit, the next
+    /// pass is sized to the time left after `wall_ms` (see `pass_cap`).
+    pub fn finish_pass(
+        &mut self,
+        grid: &TileGrid,
+        now_ms: u64,
+        wall_ms: u64,
+        time_up: bool,
+    ) -> Option<bool> {
         let (w, h) = (self.sums.width, self.sums.height);
+        let rays_before = self.sums.rays();
         let mut landed = vec![false; w as usize * h as usize];
         let mut merged = self.sums.clone();
         for (tile, sums) in self.pending.drain() {
@@ -189,7 +274,18 @@ impl Progress {
             self.stop();
             return None;
         }
-        self.plan();
+        let t = &mut self.timing;
+        if let Some(started) = t.pass_started_ms.take() {
+            t.render_ms += now_ms.saturating_sub(started);
+            t.rays += self.sums.rays() - rays_before;
+        }
+        t.last_end_ms = Some(now_ms);
+        let cap = if time_up {
+            None
+        } else {
+            self.pass_cap(wall_ms)
+        };
+        self.plan(cap);
         let active_blocks = self.active_count();
         let ends = active_blocks == 0 || time_up;
         if ends {
@@ -274,7 +370,9 @@ impl Progress {
         // The plan is a function of the sums: planned again, it is the pass the file's
         // decisions were made for (the flags only say whether there is one).
         if sampling {
-            progress.plan();
+            // No pass was timed by this coordinator: the doubling budget (a time-limited
+            // job sizes its passes again once one has run).
+            progress.plan(None);
         } else {
             progress.stop();
         }
@@ -391,7 +489,7 @@ impl Farm {
                     .rules
                     .time_limit_s
                     .is_some_and(|limit| wall_ms as f64 >= limit * 1000.0);
-            let Some(ends) = progress.finish_pass(&grid, wall_ms, time_up) else {
+            let Some(ends) = progress.finish_pass(&grid, now, wall_ms, time_up) else {
                 // Cut short before any block finished: the last pass's image stands.
                 drop(state);
                 self.assemble_now(job_id);
@@ -418,7 +516,7 @@ impl Farm {
         }
         self.flush()?;
         tracing::info!(
-            "job {job_id}: pass {} done at {:.2}s: mean spp {:.2}, error {:.4}, {} blocks sampling",
+            "job {job_id}: pass {} done at {:.3}s: mean spp {:.2}, error {:.4}, {} blocks sampling",
             info.pass,
             info.wall_s,
             info.spp_mean,

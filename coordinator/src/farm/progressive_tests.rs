@@ -256,6 +256,87 @@ fn the_time_limit_ends_the_job_with_what_its_last_pass_finished() {
     assert!(image.pixels.iter().any(|v| *v > 0.0));
 }
 
+/// Runs job `job` to its end with one worker whose every tile takes the clock 1 ms per 20
+/// rays it traced: a farm whose render rate is known. Returns each pass's wall seconds.
+fn run_timed(farm: &Farm, clock: &ManualClock, scene: &Scene, job: u64) -> Vec<f64> {
+    let w = farm.register_worker("timed").unwrap().worker_id;
+    for _ in 0..10_000 {
+        if farm.job(job).unwrap().state.is_finished() {
+            return (farm.convergence(job).unwrap().passes)
+                .iter()
+                .map(|p| p.wall_s)
+                .collect();
+        }
+        let Some(lease) = farm.lease(w).unwrap() else {
+            farm.wait_for_assemblies();
+            continue;
+        };
+        let before: f64 = match farm.lease_sums(lease.lease_id) {
+            Ok(bytes) => SumImage::from_bytes(&bytes, lease.rect.pixel_count(), "sums")
+                .unwrap()
+                .iter()
+                .skip(5)
+                .step_by(adaptive::SUMS)
+                .sum(),
+            Err(_) => 0.0,
+        };
+        let sums = render(farm, scene, &lease);
+        let rays: f64 = sums.iter().skip(5).step_by(adaptive::SUMS).sum::<f64>() - before;
+        clock.advance((rays / 20.0).round() as u64);
+        farm.complete_sums(lease.lease_id, &SumImage::to_bytes(&sums))
+            .unwrap();
+        farm.wait_for_assemblies();
+    }
+    panic!("job {job} never finished");
+}
+
+#[test]
+fn the_pass_that_would_run_into_the_time_limit_is_sized_to_end_before_it() {
+    let scene = cornell();
+    let dir = tempfile::tempdir().unwrap();
+    let clock = Arc::new(ManualClock::new(0));
+    let farm = Farm::for_tests(dir.path(), FarmConfig::default(), clock.clone());
+    // Without a limit, passes double: they end at about 1, 2, 4, 8… times the first's time.
+    let free = farm
+        .submit(sized_job(&farm, 96, 64, 16, rules(0.0, 8, 64)))
+        .unwrap();
+    let walls = run_timed(&farm, &clock, &scene, free.id);
+    let first = walls[0];
+    assert!(first > 0.05 && walls[2] > 3.0 * first, "{walls:?}");
+    // A limit of 6 first passes: doubling passes would be cut short in the fourth.
+    let mut r = rules(0.0, 8, 64);
+    let limit = 6.0 * first;
+    r.time_limit_s = Some(limit);
+    let limited = farm.submit(sized_job(&farm, 96, 64, 16, r)).unwrap();
+    let start_limited = clock.now_ms();
+    let walls_limited = run_timed(&farm, &clock, &scene, limited.id);
+    let info = farm.job(limited.id).unwrap();
+    assert_eq!(info.state, JobState::Done);
+    // With a limit passes may triple (the second ends at about 3 first passes), and the
+    // last is sized to the time left: it ends before the limit (the clock never reached
+    // it: no pass was cut short), and the job ends there rather than start a pass too
+    // small to be worth its overhead.
+    assert_eq!(walls_limited[0], first);
+    assert!(walls_limited[1] > 2.5 * first, "{walls_limited:?}");
+    let last = *walls_limited.last().unwrap();
+    assert!(
+        walls_limited.len() == 3 && last > 0.8 * limit && last < limit,
+        "{walls_limited:?}, limit {limit}"
+    );
+    assert!(
+        ((clock.now_ms() - start_limited) as f64) < limit * 1000.0,
+        "ended before the limit"
+    );
+    // More samples by the limit than the doubling passes had when they passed it.
+    let free_passes = farm.convergence(free.id).unwrap().passes;
+    let free_by_limit = free_passes.iter().rfind(|p| p.wall_s < limit).unwrap();
+    assert!(
+        info.spp_mean.unwrap() > free_by_limit.spp_mean,
+        "{:?} against {free_by_limit:?}",
+        info.spp_mean
+    );
+}
+
 #[test]
 fn a_coordinator_killed_between_passes_resumes_without_losing_a_finished_pass() {
     let scene = cornell();
