@@ -109,80 +109,24 @@ impl Out {
         self.depth = self.depth.max(part.depth + 1);
     }
 
-    /// `n`, a node of a subtree built on its own, with its links moved to the subtree's place:
-    /// its first node at `node_base`, its first slot at `slot_base`.
-    #[inline(always)]
-    fn moved(mut n: Node, node_base: u32, slot_base: u32) -> Node {
-        for c in 0..WIDTH {
-            if n.count[c] > 0 {
-                n.index[c] += slot_base;
-            } else if n.index[c] != NO_CHILD {
-                n.index[c] += node_base;
+    /// Appends a subtree built on its own, its links moved to their new places; returns the
+    /// index of its first node.
+    fn append(&mut self, sub: Out) -> u32 {
+        let (node_base, slot_base) = (self.nodes.len() as u32, self.order.len() as u32);
+        self.nodes.extend(sub.nodes.iter().map(|n| {
+            let mut n = *n;
+            for c in 0..WIDTH {
+                if n.count[c] > 0 {
+                    n.index[c] += slot_base;
+                } else if n.index[c] != NO_CHILD {
+                    n.index[c] += node_base;
+                }
             }
-        }
-        n
-    }
-
-    /// Appends the slots of wide node `index` that were built apart, in slot order: the
-    /// leaves' references and the subtrees (`subtrees[c]` for split slot `c`), their links
-    /// moved. The layout is the one a single thread makes appending them one by one; the
-    /// copies run on rayon's threads (one thread copying the whole tree below the root was
-    /// the build's last serial stretch).
-    fn append(
-        &mut self,
-        index: usize,
-        slots: &[&Slot],
-        subtrees: &[Option<Out>],
-        leaves: &[&[PrimRef]],
-        align: usize,
-    ) {
-        /// Where a run of the appended order comes from.
-        enum From<'a> {
-            Leaf(&'a [PrimRef]),
-            Subtree(&'a Out),
-        }
-        // Each slot's first node and first order slot, as appending one by one places them.
-        let (mut nodes_end, mut order_end) = (self.nodes.len(), self.order.len());
-        let mut node_runs: Vec<(usize, usize, &Out)> = Vec::with_capacity(WIDTH);
-        let mut order_runs: Vec<(usize, From)> = Vec::with_capacity(WIDTH);
-        for (c, slot) in slots.iter().enumerate() {
-            match (slot, &subtrees[c]) {
-                (Slot::Split(..), Some(sub)) => {
-                    self.nodes[index].index[c] = nodes_end as u32;
-                    node_runs.push((nodes_end, order_end, sub));
-                    order_runs.push((order_end, From::Subtree(sub)));
-                    nodes_end += sub.nodes.len();
-                    order_end += sub.order.len();
-                    self.depth = self.depth.max(sub.depth);
-                }
-                (Slot::Leaf(part), _) => {
-                    self.nodes[index].index[c] = order_end as u32;
-                    self.nodes[index].count[c] = part.len as u32;
-                    order_runs.push((order_end, From::Leaf(leaves[c])));
-                    // As [`Out::leaf`] pads it.
-                    order_end = (order_end + part.len).next_multiple_of(align);
-                    self.depth = self.depth.max(part.depth + 1);
-                }
-                (Slot::Split(..), None) => unreachable!("every split slot was built"),
-            }
-        }
-        // Indexed iterators: `par_extend` writes them in place, each thread its own range.
-        let first_node = self.nodes.len();
-        self.nodes
-            .par_extend((first_node..nodes_end).into_par_iter().map(|k| {
-                let run = node_runs.partition_point(|&(start, ..)| start <= k) - 1;
-                let (node_base, slot_base, sub) = node_runs[run];
-                Out::moved(sub.nodes[k - node_base], node_base as u32, slot_base as u32)
-            }));
-        let first_slot = self.order.len();
-        self.order
-            .par_extend((first_slot..order_end).into_par_iter().map(|k| {
-                let run = order_runs.partition_point(|&(start, _)| start <= k) - 1;
-                match order_runs[run] {
-                    (start, From::Leaf(refs)) => refs.get(k - start).map_or(PADDING, PrimRef::id),
-                    (start, From::Subtree(sub)) => sub.order[k - start],
-                }
-            }));
+            n
+        }));
+        self.order.extend_from_slice(&sub.order);
+        self.depth = self.depth.max(sub.depth);
+        node_base
     }
 }
 
@@ -656,11 +600,20 @@ impl Builder {
                 }
             })
             .collect();
-        let leaves: Vec<&[PrimRef]> = slots
-            .iter()
-            .map(|slot| &prims[slot.part().first - base..][..slot.part().len])
-            .collect();
-        out.append(index, slots, &subtrees, &leaves, self.align);
+        for (c, (slot, sub)) in slots.iter().zip(subtrees).enumerate() {
+            match slot {
+                Slot::Leaf(part) => out.leaf(
+                    index,
+                    c,
+                    part,
+                    &prims[part.first - base..][..part.len],
+                    self.align,
+                ),
+                Slot::Split(..) => {
+                    out.nodes[index].index[c] = out.append(sub.expect("built above"));
+                }
+            }
+        }
     }
 
     /// Bins `prims` into `out` (empty on entry). Filled in place: returned by value, the
