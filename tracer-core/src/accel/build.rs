@@ -465,10 +465,6 @@ impl Bins {
 
 /// Nodes at least this large bin their primitives in parallel chunks.
 const PARALLEL_BINNING: usize = 16 * 1024;
-/// Nodes at least this large partition their references in parallel chunks of
-/// `PARTITION_CHUNK`: the root's partition ran on one thread while the other waited.
-const PARALLEL_PARTITION: usize = 32 * 1024;
-const PARTITION_CHUNK: usize = 8 * 1024;
 
 impl Builder {
     /// Decides the binary node `part`, whose references are `prims`: a leaf, or split with
@@ -772,17 +768,8 @@ impl Builder {
 
     /// In-place partition by `split`; returns the number of primitives going left and the
     /// centroid bounds of both sides.
-    fn partition(&self, prims: &mut [PrimRef], split: &Split) -> (usize, Box4, Box4) {
-        if prims.len() >= PARALLEL_PARTITION {
-            self.partition_parallel(prims, split)
-        } else {
-            self.partition_serial(prims, split)
-        }
-    }
-
-    /// [`Builder::partition`] on the calling thread.
     #[inline(never)]
-    fn partition_serial(&self, prims: &mut [PrimRef], split: &Split) -> (usize, Box4, Box4) {
+    fn partition(&self, prims: &mut [PrimRef], split: &Split) -> (usize, Box4, Box4) {
         // From both ends, swapping only misplaced pairs: half the moves of a one-sided pass,
         // which count now that the references themselves move.
         let (mut left, mut right) = (Box4::EMPTY, Box4::EMPTY);
@@ -810,102 +797,6 @@ impl Builder {
             // prims[i] goes right and prims[j - 1] left.
             prims.swap(i, j - 1);
         }
-    }
-}
-
-impl Builder {
-    /// [`Builder::partition`]'s result, the same references in the same places, worked out
-    /// on rayon's threads: the two-ended pass moves nothing but the k-th reference left of
-    /// the final middle that goes right, which it swaps with the k-th from the end right of
-    /// the middle that goes left. So the sides are decided per chunk, the misplaced ones
-    /// gathered in order on each side and written back to the other side's in pairs.
-    fn partition_parallel(&self, prims: &mut [PrimRef], split: &Split) -> (usize, Box4, Box4) {
-        let mut goes_left = vec![false; prims.len()];
-        let sides: Vec<(usize, Box4, Box4)> = prims
-            .par_chunks(PARTITION_CHUNK)
-            .zip(goes_left.par_chunks_mut(PARTITION_CHUNK))
-            .map(|(refs, flags)| {
-                let (mut n, mut left, mut right) = (0, Box4::EMPTY, Box4::EMPTY);
-                for (r, flag) in refs.iter().zip(flags) {
-                    let c = r.0.centroid2();
-                    *flag = split.goes_left(&c);
-                    if *flag {
-                        left.grow_point(&c);
-                        n += 1;
-                    } else {
-                        right.grow_point(&c);
-                    }
-                }
-                (n, left, right)
-            })
-            .collect();
-        // The centroid bounds grow in another order than in the serial pass: min and max do
-        // not care, except which of +0 and -0 is kept, and no bin or extent worked out from
-        // the bounds depends on that sign (`bins_of` clamps -0 to +0).
-        let (mut mid, mut left, mut right) = (0, Box4::EMPTY, Box4::EMPTY);
-        for (n, l, r) in &sides {
-            mid += n;
-            left.grow(l);
-            right.grow(r);
-        }
-        let (left_flags, right_flags) = goes_left.split_at(mid);
-        let (left_refs, right_refs) = prims.split_at_mut(mid);
-        // The misplaced references of a side, in increasing position, and how many each
-        // chunk holds.
-        let strays =
-            |refs: &[PrimRef], flags: &[bool], to_left: bool| -> (Vec<PrimRef>, Vec<usize>) {
-                let chunks = refs
-                    .par_chunks(PARTITION_CHUNK)
-                    .zip(flags.par_chunks(PARTITION_CHUNK));
-                let counts = chunks
-                    .clone()
-                    .map(|(_, f)| f.iter().filter(|&&l| l == to_left).count())
-                    .collect();
-                let moved = chunks
-                    .flat_map_iter(|(r, f)| {
-                        r.iter()
-                            .zip(f)
-                            .filter(|(_, &l)| l == to_left)
-                            .map(|(r, _)| *r)
-                    })
-                    .collect();
-                (moved, counts)
-            };
-        let ((to_right, left_counts), (to_left, right_counts)) = rayon::join(
-            || strays(left_refs, left_flags, false),
-            || strays(right_refs, right_flags, true),
-        );
-        debug_assert_eq!(to_right.len(), to_left.len());
-        let last = to_left.len().wrapping_sub(1);
-        // The k-th stray of one side (by position) takes the place of the k-th from the end
-        // of the other side.
-        let fill = |refs: &mut [PrimRef],
-                    flags: &[bool],
-                    counts: &[usize],
-                    from: &[PrimRef],
-                    stays_left: bool| {
-            let starts = counts.iter().scan(0, |k, &n| {
-                let start = *k;
-                *k += n;
-                Some(start)
-            });
-            refs.par_chunks_mut(PARTITION_CHUNK)
-                .zip(flags.par_chunks(PARTITION_CHUNK))
-                .zip(starts.collect::<Vec<_>>())
-                .for_each(|((refs, flags), mut k)| {
-                    for (r, &l) in refs.iter_mut().zip(flags) {
-                        if l != stays_left {
-                            *r = from[last - k];
-                            k += 1;
-                        }
-                    }
-                });
-        };
-        rayon::join(
-            || fill(left_refs, left_flags, &left_counts, &to_left, true),
-            || fill(right_refs, right_flags, &right_counts, &to_right, false),
-        );
-        (mid, left, right)
     }
 }
 
@@ -990,36 +881,6 @@ mod tests {
                 assert_eq!(bits(m), bits(n));
             }
         }
-    }
-
-    #[test]
-    fn the_parallel_partition_moves_the_references_as_the_serial_one() {
-        let bounds = scattered(100_000);
-        let builder = Builder {
-            align: 4,
-            align_shift: Some(2),
-        };
-        let refs: Vec<PrimRef> = (0..bounds.len())
-            .map(|i| PrimRef::of(&bounds[i], i as u32))
-            .collect();
-        let mut centroids = Box4::EMPTY;
-        for r in &refs {
-            centroids.grow_point(&r.0.centroid2());
-        }
-        let root = bounds.iter().fold(Aabb::EMPTY, |b, p| b.union(*p));
-        let split = builder
-            .find_split(&refs, root, centroids)
-            .expect("100 000 boxes split");
-        let (mut serial, mut parallel) = (refs.clone(), refs);
-        let a = builder.partition_serial(&mut serial, &split);
-        let b = builder.partition_parallel(&mut parallel, &split);
-        assert!(a.0 > 0 && a.0 < serial.len());
-        assert_eq!(a.0, b.0);
-        let ids = |v: &[PrimRef]| v.iter().map(PrimRef::id).collect::<Vec<_>>();
-        assert_eq!(ids(&serial), ids(&parallel));
-        let bits = |b: Box4| (b.lo.map(f32::to_bits), b.hi.map(f32::to_bits));
-        assert_eq!(bits(a.1), bits(b.1));
-        assert_eq!(bits(a.2), bits(b.2));
     }
 
     #[test]
