@@ -43,14 +43,17 @@ fn a_small_farm_report_runs_and_error_falls_with_samples() {
         assert!(out.join(file).is_file(), "{file} is missing");
     }
     let csv = std::fs::read_to_string(out.join("report.csv")).unwrap();
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    // Counted from the right: the label comes first and may be quoted (with commas inside).
+    let rmse_from_right = header.len() - 1 - header.iter().position(|&c| c == "rmse").unwrap();
     let mut curves: BTreeMap<String, Vec<f64>> = BTreeMap::new();
-    for line in csv.lines().skip(1) {
-        // The label comes first and may be quoted: read the numbers from the right.
-        let fields: Vec<&str> = line.rsplitn(6, ',').collect();
+    for line in lines {
+        let fields: Vec<&str> = line.rsplitn(header.len(), ',').collect();
         curves
-            .entry(fields[5].trim_matches('"').to_string())
+            .entry(fields[header.len() - 1].trim_matches('"').to_string())
             .or_default()
-            .push(fields[2].parse().unwrap());
+            .push(fields[rmse_from_right].parse().unwrap());
     }
     let names: Vec<&String> = curves.keys().collect();
     assert_eq!(
