@@ -8,6 +8,7 @@
 //! `TESSERA_REQUIRE_CHROMIUM=1`, which CI sets.
 
 use std::net::TcpListener;
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -60,8 +61,22 @@ fn artifacts_dir() -> PathBuf {
     dir
 }
 
+/// chromedriver in a process group of its own, with the Chromium it starts: dropping it kills
+/// the whole group. Killing chromedriver alone orphaned the browser whenever a test ended
+/// without closing its session (a failed assertion, or a test that never closes it), and
+/// every such run left a headless Chromium running on the machine.
+struct Driver(Proc);
+
+impl Drop for Driver {
+    fn drop(&mut self) {
+        let _ = Command::new("kill")
+            .args(["-KILL", "--", &format!("-{}", self.0.pid())])
+            .status();
+    }
+}
+
 /// Starts chromedriver on a free loopback port and waits until it answers.
-async fn start_driver(driver: &Path, log: PathBuf) -> (Proc, String) {
+async fn start_driver(driver: &Path, log: PathBuf) -> (Driver, String) {
     let port = TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
@@ -73,7 +88,8 @@ async fn start_driver(driver: &Path, log: PathBuf) -> (Proc, String) {
             "--log-path={}",
             log.with_extension("driver.log").display()
         ))
-        .stdout(std::process::Stdio::null());
+        .stdout(std::process::Stdio::null())
+        .process_group(0);
     let proc = Proc::spawn(cmd, log);
     let url = format!("http://127.0.0.1:{port}");
     let start = Instant::now();
@@ -85,7 +101,7 @@ async fn start_driver(driver: &Path, log: PathBuf) -> (Proc, String) {
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    (proc, url)
+    (Driver(proc), url)
 }
 
 async fn open_browser(chromium: &Path, driver_url: &str) -> Browser {
@@ -173,7 +189,7 @@ struct DashboardFarm {
     coord: Coordinator,
     client: Client,
     _worker: Proc,
-    _driver: Proc,
+    _driver: Driver,
     browser: Browser,
 }
 
@@ -571,6 +587,7 @@ async fn the_dashboard_shows_a_progressive_job_refine_pass_by_pass() {
     if early_running {
         assert_ne!(early, png, "the preview refined after the first passes");
     }
+    browser.close().await.unwrap();
 }
 
 /// Reads `coordinator serve`'s stdout until its dashboard line.
