@@ -1387,9 +1387,20 @@ mod tests {
         )
     }
 
+    /// A camera at `offset` looking down −z (the packet worlds' view), 4:3, no clipping.
+    fn test_camera(offset: DVec3) -> crate::camera::Camera {
+        crate::camera::Camera::from_orientation(
+            offset,
+            glam::DQuat::IDENTITY,
+            1.0,
+            0.0,
+            f64::INFINITY,
+            4.0 / 3.0,
+        )
+    }
+
     #[test]
     fn a_packet_finds_exactly_each_rays_own_hit() {
-        use crate::camera::Camera;
         let mut next = crate::test_rng::uniform(2024);
         for (scale, offset) in [
             (1.0, DVec3::ZERO),
@@ -1398,14 +1409,7 @@ mod tests {
         ] {
             let world = packet_world(scale, offset);
             let all: Vec<u32> = (0..world.objects.len() as u32).collect();
-            let camera = Camera::from_orientation(
-                offset,
-                glam::DQuat::IDENTITY,
-                1.0,
-                0.0,
-                f64::INFINITY,
-                4.0 / 3.0,
-            );
+            let camera = test_camera(offset);
             let (w, h) = (96.0, 72.0);
             let (mut hits, mut rays_traced) = (0, 0);
             for k in 0..160 {
@@ -1477,7 +1481,6 @@ mod tests {
 
     #[test]
     fn a_shadow_packet_is_blocked_exactly_as_each_ray_alone() {
-        use crate::camera::Camera;
         let mut next = crate::test_rng::uniform(99);
         let mut worlds = Vec::new();
         for (scale, offset) in [
@@ -1550,14 +1553,7 @@ mod tests {
 
         for (scale, offset, world) in &worlds {
             let (scale, offset) = (*scale, *offset);
-            let camera = Camera::from_orientation(
-                offset,
-                glam::DQuat::IDENTITY,
-                1.0,
-                0.0,
-                f64::INFINITY,
-                4.0 / 3.0,
-            );
+            let camera = test_camera(offset);
             let (w, h) = (48.0, 36.0);
             let (mut blocked, mut open) = (0, 0);
             for k in 0..120 {

@@ -139,7 +139,8 @@ impl Progress {
     /// first lease) × [`TIME_MARGIN`], at most [`TIMED_GROWTH`] × the image's rays, or zero
     /// (no pass) below [`MIN_PASS`] of them. None without a limit or before a pass was
     /// timed: the doubling budget.
-    fn pass_cap(&self, wall_ms: u64) -> Option<f64> {
+    /// `image_rays`: what the image's samples have traced so far (`SumImage::rays`).
+    fn pass_cap(&self, wall_ms: u64, image_rays: f64) -> Option<f64> {
         let limit_ms = self.rules.time_limit_s? * 1000.0;
         let t = &self.timing;
         if t.render_ms == 0 || t.rays <= 0.0 {
@@ -152,7 +153,7 @@ impl Progress {
             0.0
         };
         let left = limit_ms - wall_ms as f64 - gap;
-        let image = self.sums.rays();
+        let image = image_rays;
         let cap = (rate * left * TIME_MARGIN).min(TIMED_GROWTH * image);
         Some(if cap < MIN_PASS * image { 0.0 } else { cap })
     }
@@ -274,16 +275,18 @@ impl Progress {
             self.stop();
             return None;
         }
+        // One scan of the sums for the pass's rays and the next pass's cap.
+        let rays_after = self.sums.rays();
         let t = &mut self.timing;
         if let Some(started) = t.pass_started_ms.take() {
             t.render_ms += now_ms.saturating_sub(started);
-            t.rays += self.sums.rays() - rays_before;
+            t.rays += rays_after - rays_before;
         }
         t.last_end_ms = Some(now_ms);
         let cap = if time_up {
             None
         } else {
-            self.pass_cap(wall_ms)
+            self.pass_cap(wall_ms, rays_after)
         };
         self.plan(cap);
         let active_blocks = self.active_count();
