@@ -5,8 +5,8 @@
 
 use std::sync::atomic::AtomicBool;
 
-use protocol::client::{Client, ClientError};
-use protocol::{pixels_to_bytes, Completion, Lease};
+use protocol::client::{pixels_body, Bytes, Client, ClientError};
+use protocol::{Completion, Lease};
 use tracer_core::adaptive::{block_of, SumImage};
 use tracer_core::{Renderer, SampleOrder, Scene};
 
@@ -16,9 +16,10 @@ pub enum Start {
     Pass(Vec<f64>),
 }
 
-/// A rendered lease, as the bytes its completion route takes.
+/// A rendered lease, as the bytes its completion route takes (shared, not copied, by each
+/// try to send them).
 pub struct Output {
-    bytes: Vec<u8>,
+    bytes: Bytes,
     pass: bool,
 }
 
@@ -52,14 +53,14 @@ pub fn render(
             let samples = |x: u32, y: u32| pass.block_range(block_of(width, x, y) as u32);
             let done = renderer.render_tile_samples(lease.rect, &samples, &mut sums, cancel);
             Ok(done.then(|| Output {
-                bytes: SumImage::to_bytes(&sums),
+                bytes: Bytes::from(SumImage::to_bytes(&sums)),
                 pass: true,
             }))
         }
         _ => Ok(renderer
             .render_tile(lease.rect, cancel)
             .map(|image| Output {
-                bytes: pixels_to_bytes(&image.pixels),
+                bytes: pixels_body(image.pixels),
                 pass: false,
             })),
     }

@@ -3,6 +3,8 @@
 //! finished frame is stored as its PNG and its linear f32 pixels, so EXR and PFM can be
 //! encoded on request after the tiles are gone.
 
+use std::sync::Arc;
+
 use protocol::JobState;
 use tracer_core::{Image, ImageFormat};
 
@@ -101,15 +103,14 @@ impl Farm {
     fn write_image(&self, job_id: u64) -> Result<()> {
         // A progressive job's image is its last finished pass.
         if let Some(image) = self.progressive_image(job_id)? {
-            self.files.put_image(job_id, &image.to_png(), image)?;
+            self.files
+                .put_image(job_id, &image.to_png(), Arc::new(image))?;
             return Ok(());
         }
-        let (width, height, grid, frames) = {
+        let (grid, frames) = {
             let state = self.lock();
             let job = state.job(job_id)?;
             (
-                job.spec.render.width,
-                job.spec.render.height,
                 job.grid,
                 job.spec.frames.is_some().then(|| job.spec.frame_list()),
             )
@@ -123,8 +124,7 @@ impl Farm {
                 for &frame in frames {
                     let image = self.files.assemble(
                         job_id,
-                        width,
-                        height,
+                        grid.frame_at(frame),
                         grid.tile_size(),
                         &tiles_of(frame),
                     )?;
@@ -138,13 +138,12 @@ impl Farm {
                         self.files.put_frame_image(job_id, frame, &png, image)?;
                     }
                 }
-                first.unwrap_or_else(|| (Vec::new(), Image::new(0, 0)))
+                first.unwrap_or_else(|| (Vec::new(), Arc::new(Image::new(0, 0))))
             }
             None => {
                 let image = self.files.assemble(
                     job_id,
-                    width,
-                    height,
+                    grid.frame_at(grid.frame(0)),
                     grid.tile_size(),
                     &tiles_of(grid.frame(0)),
                 )?;
@@ -171,7 +170,7 @@ impl Farm {
         frame: Option<u32>,
         format: ImageFormat,
     ) -> Result<Vec<u8>> {
-        let (width, height, tile_size, tiles, state, stored) = {
+        let (width, height, tile_size, frame_at, tiles, state, stored) = {
             let state = self.lock();
             let job = state.job(job_id)?;
             let first = job.grid.frame(0);
@@ -205,6 +204,7 @@ impl Farm {
                 job.spec.render.width,
                 job.spec.render.height,
                 job.grid.tile_size(),
+                job.grid.frame_at(frame),
                 tiles,
                 job.state,
                 stored,
@@ -247,7 +247,7 @@ impl Farm {
         }
         Ok(self
             .files
-            .assemble(job_id, width, height, tile_size, &tiles)?
+            .assemble(job_id, frame_at, tile_size, &tiles)?
             .encode(format))
     }
 

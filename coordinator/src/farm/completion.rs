@@ -13,7 +13,7 @@ impl Farm {
     /// first valid result wins, and the tile's other leases are revoked. The job's last tile
     /// starts its assembly.
     pub fn complete(&self, lease_id: u64, pixels: &[u8]) -> Result<Completion> {
-        let (job_id, tile, rect, tile_size) = {
+        let (job_id, frame, tile, rect, tile_size) = {
             let state = self.lock();
             let lease = state.live(lease_id)?;
             let job = state.job(lease.job_id)?;
@@ -26,6 +26,7 @@ impl Farm {
             let grid = job.grid;
             (
                 lease.job_id,
+                grid.frame_at(grid.frame(lease.tile)),
                 lease.tile,
                 grid.rect(lease.tile),
                 grid.tile_size(),
@@ -42,7 +43,8 @@ impl Farm {
         }
         // Outside the lock. The lease may lapse meanwhile: then another worker owns the tile,
         // and the file (equal pixels, by determinism) is simply overwritten later.
-        self.files.put_tile(job_id, tile, tile_size, rect, pixels)?;
+        self.files
+            .put_tile(job_id, frame, tile, tile_size, rect, pixels)?;
         self.tile_writes.fetch_add(1, Ordering::Relaxed);
         let now = self.now_ms();
         let done = self.lock().complete(lease_id, now)?;

@@ -1,5 +1,6 @@
 use super::*;
 use crate::clock::ManualClock;
+use crate::store::files::Frame;
 use protocol::{FailureReport, Lease, TileState, WorkerState};
 use tracer_core::TileRect;
 
@@ -529,6 +530,11 @@ fn a_job_whose_last_tile_landed_before_a_crash_is_assembled_on_start() {
     files
         .put_tile(
             job.id,
+            Frame {
+                number: 0,
+                width: 16,
+                height: 16,
+            },
             3,
             8,
             TileRect::new(8, 8, 8, 8),

@@ -5,6 +5,7 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
+use crate::store::files::Frame;
 use protocol::JobSpec;
 use tracer_core::TileRect;
 
@@ -58,6 +59,15 @@ impl TileGrid {
 
     pub fn frame(&self, tile: u32) -> u32 {
         self.first_frame + tile / self.per_frame.max(1)
+    }
+
+    /// Frame `number` of the job, with its size.
+    pub fn frame_at(&self, number: u32) -> Frame {
+        Frame {
+            number,
+            width: self.width,
+            height: self.height,
+        }
     }
 
     pub fn rect(&self, tile: u32) -> TileRect {
