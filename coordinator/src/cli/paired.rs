@@ -97,7 +97,7 @@ fn change(adaptive: f64, uniform: f64) -> Option<f64> {
 /// many pairs the adaptive image had the lower f32 (else 8-bit) RMSE.
 pub fn paired_markdown(runs: &[Run]) -> String {
     let mut out = String::from(
-        "\n## Adaptive against uniform, pair by pair\n\nEach adaptive run against the uniform \
+        "\n\n## Adaptive against uniform, pair by pair\n\nEach adaptive run against the uniform \
          run just before it (same budget, time limit = that run's render time): the median \
          over pairs of the change in each figure (negative: the adaptive image is better), and \
          the pairs in which its RMSE (f32 where measured) is lower.\n\n\
