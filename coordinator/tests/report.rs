@@ -82,3 +82,42 @@ fn a_report_rejects_impossible_worker_counts() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("--workers 0"));
 }
+
+#[test]
+fn repeated_adaptive_runs_are_listed_paired_and_summarised_by_their_median() {
+    let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/scenes/course/cornell_box.scene");
+    let out = std::env::temp_dir().join(format!("tessera-paired-report-{}", std::process::id()));
+    let output = Command::new(env!("CARGO_BIN_EXE_coordinator"))
+        .arg("report")
+        .arg(&scene)
+        .args(["--width", "64", "--height", "48", "--reference-spp", "64"])
+        .args(["--spp", "4,16", "--workers", "1", "--threads", "2"])
+        .args(["--no-baseline", "--adaptive", "0.01", "--repeats", "3"])
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    // Every run: 2 budgets × 3 repeats × (uniform, adaptive), uniform first in each pair.
+    let runs = std::fs::read_to_string(out.join("runs.csv")).unwrap();
+    let lines: Vec<&str> = runs.lines().skip(1).collect();
+    assert_eq!(lines.len(), 12, "{runs}");
+    for pair in lines.chunks(2) {
+        assert!(
+            pair[0].contains(",false,") && pair[1].contains(",true,"),
+            "{runs}"
+        );
+    }
+    // One median row per configuration and budget.
+    let csv = std::fs::read_to_string(out.join("report.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 4, "{csv}");
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("pair by pair"), "{md}");
+    assert!(md.contains("| 1 | 16 | 3 |"), "{md}");
+    std::fs::remove_dir_all(&out).unwrap();
+}

@@ -155,12 +155,14 @@ pub enum SampleOrder {
 /// pass over the first samples of a large `spp_max` only orders what it renders.
 ///
 /// Strata are numbered along a Morton curve of the enclosing power-of-two grid whose leading
-/// bits are the coarsest cells; sample k takes the code `owen(reverse(k))`. A prefix of 2^j
-/// samples then puts exactly one sample in each of the 2^j coarsest cells (the bit reversal),
-/// and the per-pixel nested (Owen) scramble, which flips each bit by a hash of the bits above
-/// it, puts each cell's sample at its own place in the cell. (A plain XOR mask would put every
-/// sample of a prefix at the same place in its cell: a regular grid, measurably noisier.) Codes outside a grid that is not a power of two in some
-/// direction are skipped; its prefixes stay nearly as well spread.
+/// bits are the coarsest cells; sample k takes the code `reverse(lk(k))`, with `lk` a
+/// hash-based nested (Owen) scramble of k. A prefix of 2^j samples then puts exactly one
+/// sample in each of the 2^j coarsest cells (`lk` permutes every set of low bits among
+/// themselves, and the reversal makes k's low bits the code's leading ones), and the per-pixel
+/// scramble puts each cell's sample at its own place in the cell. (A plain XOR mask would put
+/// every sample of a prefix at the same place in its cell: a regular grid, measurably
+/// noisier.) Codes outside a grid that is not a power of two in some direction are skipped;
+/// its prefixes stay nearly as well spread.
 pub fn progressive_strata(
     seed: u64,
     x: u32,
@@ -195,22 +197,13 @@ pub fn progressive_strata_from(
     let from = (from as usize).min(limit);
     if cols.is_power_of_two() && rows.is_power_of_two() {
         for k in from as u64..limit as u64 {
-            let code = if bits == 0 {
-                0
-            } else {
-                owen(k.reverse_bits() >> (64 - bits), bits, pixel_seed)
-            };
-            let (cx, cy) = morton_decode(code, bx, by);
+            let (cx, cy) = morton_decode(scrambled_code(k, bits, pixel_seed), bx, by);
             out.push(cx + cy * cols);
         }
         return;
     }
     for k in 0..1u64 << bits {
-        let code = if bits == 0 {
-            0
-        } else {
-            owen(k.reverse_bits() >> (64 - bits), bits, pixel_seed)
-        };
+        let code = scrambled_code(k, bits, pixel_seed);
         let (cx, cy) = morton_decode(code, bx, by);
         if cx < cols && cy < rows {
             out.push(cx + cy * cols);
@@ -222,17 +215,25 @@ pub fn progressive_strata_from(
     out.drain(..from);
 }
 
-/// Nested uniform (Owen) scrambling of a `bits`-bit code: bit i is flipped by a hash of the
-/// code's bits above it, so the map is a bijection that keeps every prefix of leading bits
-/// a bijection too.
-fn owen(code: u64, bits: u32, seed: u64) -> u64 {
-    let mut out = code;
-    for i in 0..bits {
-        let above = code >> (i + 1);
-        let level = (bits - i) as u64;
-        out ^= (mix(seed ^ mix(above ^ (level << 58))) & 1) << i;
+/// Sample k's `bits`-bit Morton code: k's bits reversed (the coarsest cells first) after a
+/// nested scramble. A hash-based Owen scramble (Laine and Karras; Burley's constants,
+/// "Practical Hash-based Owen Scrambling", JCGT 2020) of the reversed code is, before the
+/// reversal, a map in which each bit depends on the bits below it only: a bijection on every
+/// set of low bits, so on every prefix of the code's leading bits. It costs four
+/// multiplications per sample where a hash per bit cost two hashes per bit (a progressive job
+/// spent 5.7 % of its time there). In 64-bit words: the low 32 bits are Burley's hash
+/// exactly, and grids past 2^32 codes still get a bijection.
+#[inline]
+fn scrambled_code(k: u64, bits: u32, seed: u64) -> u64 {
+    if bits == 0 {
+        return 0;
     }
-    out
+    let mut v = k.wrapping_add(seed);
+    v ^= v.wrapping_mul(0x6c50_b47c);
+    v ^= v.wrapping_mul(0xb82f_1e52);
+    v ^= v.wrapping_mul(0xc7af_e638);
+    v ^= v.wrapping_mul(0x8d22_f6e6);
+    v.reverse_bits() >> (64 - bits)
 }
 
 /// Splits a Morton code of a `2^bx × 2^by` grid whose most significant bits are the coarsest
@@ -404,5 +405,49 @@ mod tests {
         progressive_strata(3, 10, 20, (8, 8), 64, &mut order);
         progressive_strata_from(3, 10, 20, (8, 8), 13, 40, &mut other);
         assert_eq!(other, order[13..40]);
+    }
+
+    #[test]
+    fn every_power_of_two_prefix_is_stratified_in_every_pixel() {
+        // On 16×32 strata (a progressive job's spp_max of 512), samples 0..2^j of any pixel
+        // fall one in each of the 2^j coarsest Morton cells, and so does every aligned run
+        // 2^j·m..2^j·(m+1): each doubling pass adds a stratified set of its own.
+        let mut order = Vec::new();
+        for (x, y) in (0..40).map(|i| (i * 7 % 23, i * 13 % 31)) {
+            progressive_strata(9, x, y, (16, 32), 512, &mut order);
+            let code = |s: u32| {
+                let (cx, cy) = (s % 16, s / 16);
+                // Morton code, coarsest bits first: x and y alternate for 4 levels, then y.
+                let mut c = 0u32;
+                for level in 0..4 {
+                    c = c << 2 | ((cx >> (3 - level)) & 1) << 1 | ((cy >> (4 - level)) & 1);
+                }
+                c << 1 | (cy & 1)
+            };
+            for j in 0..=9 {
+                for run in order.chunks(1 << j) {
+                    let cells: std::collections::HashSet<_> =
+                        run.iter().map(|&s| code(s) >> (9 - j)).collect();
+                    assert_eq!(cells.len(), 1 << j, "pixel ({x}, {y}), 2^{j}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_scramble_spreads_a_cells_sample_over_the_cell() {
+        // Sample 0 of each pixel, on 8×8 strata: its stratum is uniform over all 64 across
+        // pixels, not one place shared by all (which a plain XOR mask per level would give
+        // within a prefix).
+        let mut order = Vec::new();
+        let mut counts = [0u32; 64];
+        for y in 0..64 {
+            for x in 0..100 {
+                progressive_strata(4, x, y, (8, 8), 1, &mut order);
+                counts[order[0] as usize] += 1;
+            }
+        }
+        // 100 expected per stratum; a binomial's spread is 10.
+        assert!(counts.iter().all(|&c| (50..150).contains(&c)), "{counts:?}");
     }
 }

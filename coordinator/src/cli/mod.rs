@@ -3,6 +3,7 @@
 //! `workers`). Flags are parsed into plain structs here; the commands build everything else.
 
 mod client;
+mod paired;
 mod render;
 mod report;
 mod serve;

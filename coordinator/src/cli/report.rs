@@ -16,6 +16,7 @@ use tracer_core::report::{
 use tracer_core::{Image, ImageFormat, RenderSettings};
 use worker::available_cores;
 
+use super::paired::{median_row, paired_markdown, runs_csv, Run};
 use super::submit::{collect_submission, describe};
 use super::Failure;
 use crate::embedded::EmbeddedFarm;
@@ -58,6 +59,10 @@ pub struct ReportArgs {
     /// that run's wall time as its time limit: adaptive against uniform at equal time.
     #[arg(long, value_name = "X")]
     pub adaptive: Option<f64>,
+    /// Runs per sample count and worker count (each uniform run followed by its adaptive
+    /// one); the rows are the median of each column, and runs.csv holds every run.
+    #[arg(long, default_value_t = 1)]
+    pub repeats: u32,
 }
 
 pub fn run(args: ReportArgs) -> ExitCode {
@@ -82,6 +87,9 @@ fn as_delivered(image: &Image) -> Result<Image, Failure> {
 fn report(args: ReportArgs) -> Result<(), Failure> {
     if args.spp.is_empty() || args.spp.contains(&0) {
         return Err(Failure::usage("--spp needs sample counts of at least 1"));
+    }
+    if args.repeats == 0 {
+        return Err(Failure::usage("--repeats needs at least 1"));
     }
     let threads = args.threads.unwrap_or_else(available_cores).max(1);
     let mut workers = args.workers.clone();
@@ -150,82 +158,104 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
     }
 
     let runtime = super::runtime()?;
+    let mut runs: Vec<Run> = Vec::new();
     for &n in &workers {
         let config = format!("farm: {n} worker{}", plural(n));
-        let measured = runtime.block_on(async {
+        let adaptive_config = args
+            .adaptive
+            .map(|threshold| format!("{config}, adaptive {threshold}"));
+        let largest = args.spp.iter().max().copied().unwrap_or(1).max(2);
+        let rendered = runtime.block_on(async {
             let farm = EmbeddedFarm::start(None, n, threads, None).await?;
             let mut out = Vec::new();
-            let mut result = Ok(());
-            for &spp in &args.spp {
-                let spec = JobSpec {
-                    name: None,
-                    render: RenderSettings {
-                        spp,
-                        ..settings.clone()
-                    },
-                    frames: None,
-                    tile_size: args.tile_size,
-                    adaptive: None,
-                };
-                match render_through(&farm, &args.scene, spec).await {
-                    Ok((image, seconds, info)) => {
+            let result = async {
+                // Each uniform run is followed at once by its adaptive run, so that a pair
+                // sees the same load on the machine (the farm's times drift with it).
+                for &spp in &args.spp {
+                    for repeat in 0..args.repeats {
+                        let spec = JobSpec {
+                            name: None,
+                            render: RenderSettings {
+                                spp,
+                                ..settings.clone()
+                            },
+                            frames: None,
+                            tile_size: args.tile_size,
+                            adaptive: None,
+                        };
+                        let (image, seconds, info) =
+                            render_through(&farm, &args.scene, spec).await?;
                         // Its render time: first lease to image stored.
                         let rendering = info.elapsed_s.unwrap_or(seconds);
-                        out.push((spp, (image, seconds), None, rendering));
-                    }
-                    Err(e) => {
-                        result = Err(e);
-                        break;
-                    }
-                }
-            }
-            // The same wall time, spent where the error estimate says it is needed. The
-            // time limit counts from the job's first lease, so it is the uniform job's time
-            // from its first lease to its stored image: submission, upload and download
-            // then cost both jobs alike, and the two rows' seconds compare.
-            let uniform: Vec<f64> = out.iter().map(|o| o.3).collect();
-            for (&spp, &seconds) in args.spp.iter().zip(&uniform) {
-                let Some(threshold) = args.adaptive.filter(|_| result.is_ok()) else {
-                    break;
-                };
-                let spec = JobSpec {
-                    name: None,
-                    render: settings.clone(),
-                    frames: None,
-                    tile_size: args.tile_size,
-                    adaptive: Some(protocol::AdaptiveSpec {
-                        noise_threshold: threshold,
-                        // The first pass straight to 8 spp: two passes fewer than from 2,
-                        // and the plan decides nothing before 8 anyway (it only doubles).
-                        spp_min: 8,
-                        spp_max: 4 * args.spp.iter().max().copied().unwrap_or(1).max(2),
-                        time_limit_s: Some(seconds),
-                    }),
-                };
-                match render_through(&farm, &args.scene, spec).await {
-                    Ok((image, seconds, info)) => {
+                        out.push((config.clone(), spp, repeat, image, seconds, None));
+                        let Some(threshold) = args.adaptive else {
+                            continue;
+                        };
+                        // The same time, spent where the error estimate says it is needed.
+                        // The time limit counts from the job's first lease, so it is the
+                        // uniform job's time from its first lease to its stored image:
+                        // submission, upload and download then cost both jobs alike, and the
+                        // two rows' seconds compare.
+                        let spec = JobSpec {
+                            name: None,
+                            render: settings.clone(),
+                            frames: None,
+                            tile_size: args.tile_size,
+                            adaptive: Some(protocol::AdaptiveSpec {
+                                noise_threshold: threshold,
+                                // The first pass straight to 8 spp: two passes fewer than
+                                // from 2, and the plan decides nothing before 8 anyway.
+                                spp_min: 8,
+                                spp_max: 4 * largest,
+                                time_limit_s: Some(rendering),
+                            }),
+                        };
+                        let (image, seconds, info) =
+                            render_through(&farm, &args.scene, spec).await?;
                         let mean = info.spp_mean.unwrap_or(0.0);
-                        out.push((spp, (image, seconds), Some(mean), seconds));
+                        let label = adaptive_config.clone().unwrap_or_default();
+                        out.push((label, spp, repeat, image, seconds, Some(mean)));
                     }
-                    Err(e) => result = Err(e),
                 }
+                Ok::<(), Failure>(())
             }
+            .await;
             farm.shutdown().await;
             result.map(|()| out)
         })?;
-        for (spp, (image, seconds), adaptive, _) in measured {
-            let row = match adaptive {
-                None => measure_both(&config, spp, seconds, &image.png, &image.linear),
-                // Labelled by the uniform run it matches in time; spp is its mean.
-                Some(mean) => measure_both(
-                    &format!("{config}, adaptive {}", args.adaptive.unwrap_or_default()),
-                    mean.round() as u32,
-                    seconds,
-                    &image.png,
-                    &image.linear,
-                ),
-            };
-            record(row.map_err(Failure::failed)?);
+        for (config, spp, repeat, image, seconds, spp_mean) in rendered {
+            // An adaptive row's spp is its mean, rounded.
+            let shown = spp_mean.map_or(spp, |m| m.round() as u32);
+            let row = measure_both(&config, shown, seconds, &image.png, &image.linear)
+                .map_err(Failure::failed)?;
+            print_row(&row);
+            runs.push(Run {
+                workers: n,
+                budget: spp,
+                repeat,
+                adaptive: spp_mean.is_some(),
+                spp_mean: spp_mean.unwrap_or(spp as f64),
+                row,
+            });
+        }
+    }
+    // Uniform rows before adaptive ones, each the median of its runs.
+    let mut labels: Vec<&str> = Vec::new();
+    for run in &runs {
+        if !labels.contains(&run.row.config.as_str()) {
+            labels.push(&run.row.config);
+        }
+    }
+    labels.sort_by_key(|l| l.contains("adaptive"));
+    for label in labels {
+        for &spp in &args.spp {
+            let same: Vec<&Run> = runs
+                .iter()
+                .filter(|r| r.row.config == label && r.budget == spp)
+                .collect();
+            if let Some(row) = median_row(&same) {
+                rows.push(row);
+            }
         }
     }
 
@@ -240,16 +270,36 @@ fn report(args: ReportArgs) -> Result<(), Failure> {
              submitting the scene and its assets over HTTP to holding the finished PNG. \
              \"in-process\" is the tracer alone on the same threads. \"adaptive X\" rows are \
              progressive jobs (noise threshold X, 8..4x the largest spp) whose time limit is the \
-             render time (first lease to stored image) of the uniform run of the same position: \
-             their spp is the mean. Every image, the reference included, is compared as the \
+             render time (first lease to stored image) of the uniform run just before it: \
+             their spp is the mean. {} Every image, the reference included, is compared as the \
              8-bit PNG a user gets; a rendered reference also gives the f32 columns, each \
              image's linear pixels (the job's PFM, fetched after its time is taken).",
-            args.tile_size
+            args.tile_size,
+            if args.repeats > 1 {
+                format!(
+                    "Farm rows: each column the median of {} runs (runs.csv lists them).",
+                    args.repeats
+                )
+            } else {
+                String::new()
+            }
         ),
     };
     write_report(&args.output, &meta, &rows).map_err(Failure::failed)?;
+    let write = |name: &str, text: String| {
+        std::fs::write(args.output.join(name), text)
+            .map_err(|e| Failure::failed(format!("writing {}/{name}: {e}", args.output.display())))
+    };
+    write("runs.csv", runs_csv(&runs))?;
+    if args.adaptive.is_some() {
+        let md = args.output.join("report.md");
+        let mut text = std::fs::read_to_string(&md)
+            .map_err(|e| Failure::failed(format!("reading {}: {e}", md.display())))?;
+        text += &paired_markdown(&runs);
+        write("report.md", text)?;
+    }
     eprintln!(
-        "wrote {}/report.csv, report.md and error_vs_time.png",
+        "wrote {}/report.csv, runs.csv, report.md and error_vs_time.png",
         args.output.display()
     );
     Ok(())
