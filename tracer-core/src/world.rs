@@ -8,8 +8,8 @@ use crate::accel::{with_capacity_huge, Bvh, PacketBounds, PACKET, PADDING};
 
 mod top;
 use crate::geometry::{
-    any_candidate, intersect_triangle, intersect_unit_sphere_scaled, Aabb, Motion, Ray, Transform,
-    TransformDesc, TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
+    any_candidate, intersect_triangle, intersect_unit_sphere_scaled, prefetch_leaf, Aabb, Motion,
+    Ray, Transform, TransformDesc, TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
 };
 use top::TopLevel;
 
@@ -620,8 +620,9 @@ impl World {
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
         let mut found: [Option<ObjectHit>; PACKET] = [None; PACKET];
+        let fetch = |tris| prefetch_leaf(&mesh.blocks, &mesh.corners, tris);
         mesh.bvh
-            .traverse_packet(local, &mut bounds[..n], |i, tris, t_max| {
+            .traverse_packet(local, &mut bounds[..n], fetch, |i, tris, t_max| {
                 let (tri_ray, ray32) = tri_rays[i].get_or_insert_with(|| {
                     let tri_ray = TriangleRay::new(&local[i]);
                     (tri_ray, TriangleRayF32::new(&tri_ray))
@@ -738,9 +739,10 @@ impl World {
         let local: &[Ray] = unsafe { std::slice::from_raw_parts(local.as_ptr().cast::<Ray>(), n) };
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
+        let fetch = |tris| prefetch_leaf(&mesh.blocks, &mesh.corners, tris);
         let mut blocked =
             mesh.bvh
-                .traverse_packet_any(local, &mut bounds[..n], |j, tris, t_max| {
+                .traverse_packet_any(local, &mut bounds[..n], fetch, |j, tris, t_max| {
                     let (tri_ray, ray32) = tri_rays[j].get_or_insert_with(|| {
                         let tri_ray = TriangleRay::new(&local[j]);
                         (tri_ray, TriangleRayF32::new(&tri_ray))

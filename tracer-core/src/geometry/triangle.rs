@@ -342,6 +342,21 @@ pub fn any_candidate(
     false
 }
 
+/// Starts fetching the f32 blocks and the f64 corners of the triangles in `slots` (a hint:
+/// nothing is read), so that a caller about to test several leaves has all their loads in
+/// flight at once.
+#[inline(always)]
+pub fn prefetch_leaf(
+    blocks: &[TriangleBlock],
+    corners: &[[DVec3; 3]],
+    slots: std::ops::Range<usize>,
+) {
+    let leaf_blocks = &blocks[slots.start / BLOCK..slots.end.div_ceil(BLOCK).min(blocks.len())];
+    prefetch(leaf_blocks.as_ptr(), size_of_val(leaf_blocks));
+    let leaf_corners = &corners[slots.start..slots.end.min(corners.len())];
+    prefetch(leaf_corners.as_ptr(), size_of_val(leaf_corners));
+}
+
 /// Starts fetching the cache lines of `bytes` bytes at `p` (a hint: nothing is read).
 #[inline(always)]
 #[allow(unused_unsafe)]
