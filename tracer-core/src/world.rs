@@ -4,12 +4,13 @@
 
 use glam::{DMat3, DVec2, DVec3};
 
-use crate::accel::{with_capacity_huge, Bvh, PacketBounds, PACKET, PADDING};
+use crate::accel::{with_capacity_huge, Bvh, Fetch, PacketBounds, PACKET, PADDING};
 
 mod top;
 use crate::geometry::{
-    any_candidate, intersect_triangle, intersect_unit_sphere_scaled, prefetch_leaf, Aabb, Motion,
-    Ray, Transform, TransformDesc, TriangleBlock, TriangleRay, TriangleRayF32, BLOCK,
+    any_candidate, intersect_triangle, intersect_unit_sphere_scaled, prefetch_blocks,
+    prefetch_leaf, Aabb, Motion, Ray, Transform, TransformDesc, TriangleBlock, TriangleRay,
+    TriangleRayF32, BLOCK,
 };
 use top::TopLevel;
 
@@ -110,14 +111,18 @@ impl Mesh {
             .collect_into_vec(&mut blocks);
         // The triangles are stored in leaf order now; the order itself is not needed again.
         bvh.order = Vec::new();
-        Mesh {
+        let mut mesh = Mesh {
             corners,
             indices,
             normals,
             tex_coords,
             bvh,
             blocks,
+        };
+        if mesh.leaf_bytes() >= PREFETCH_LEAVES_FROM {
+            mesh.bvh = std::mem::take(&mut mesh.bvh).with_spans();
         }
+        mesh
     }
 }
 
@@ -634,10 +639,12 @@ impl World {
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
         let mut found: [Option<ObjectHit>; PACKET] = [None; PACKET];
         let large = mesh.leaf_bytes() >= PREFETCH_LEAVES_FROM;
-        let fetch = |tris| {
-            if large {
-                prefetch_leaf(&mesh.blocks, &mesh.corners, tris)
-            }
+        let fetch = |tris, what| match what {
+            Fetch::Leaf if large => prefetch_leaf(&mesh.blocks, &mesh.corners, tris),
+            // The f64 corners of a whole subtree would be too many lines for the few a ray
+            // tests.
+            Fetch::Subtree => prefetch_blocks(&mesh.blocks, tris),
+            Fetch::Leaf => {}
         };
         mesh.bvh
             .traverse_packet(local, &mut bounds[..n], fetch, |i, tris, t_max| {
@@ -758,10 +765,12 @@ impl World {
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
         let large = mesh.leaf_bytes() >= PREFETCH_LEAVES_FROM;
-        let fetch = |tris| {
-            if large {
-                prefetch_leaf(&mesh.blocks, &mesh.corners, tris)
-            }
+        let fetch = |tris, what| match what {
+            Fetch::Leaf if large => prefetch_leaf(&mesh.blocks, &mesh.corners, tris),
+            // The f64 corners of a whole subtree would be too many lines for the few a ray
+            // tests.
+            Fetch::Subtree => prefetch_blocks(&mesh.blocks, tris),
+            Fetch::Leaf => {}
         };
         let mut blocked =
             mesh.bvh

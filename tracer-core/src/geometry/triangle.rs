@@ -351,10 +351,18 @@ pub fn prefetch_leaf(
     corners: &[[DVec3; 3]],
     slots: std::ops::Range<usize>,
 ) {
-    let leaf_blocks = &blocks[slots.start / BLOCK..slots.end.div_ceil(BLOCK).min(blocks.len())];
-    prefetch(leaf_blocks.as_ptr(), size_of_val(leaf_blocks));
-    let leaf_corners = &corners[slots.start..slots.end.min(corners.len())];
-    prefetch(leaf_corners.as_ptr(), size_of_val(leaf_corners));
+    prefetch_blocks(blocks, slots.clone());
+    if let Some(leaf_corners) = corners.get(slots) {
+        prefetch(leaf_corners.as_ptr(), size_of_val(leaf_corners));
+    }
+}
+
+/// Starts fetching the f32 blocks of the triangles in `slots` (a hint: nothing is read).
+#[inline(always)]
+pub fn prefetch_blocks(blocks: &[TriangleBlock], slots: std::ops::Range<usize>) {
+    if let Some(leaf_blocks) = blocks.get(slots.start / BLOCK..slots.end.div_ceil(BLOCK)) {
+        prefetch(leaf_blocks.as_ptr(), size_of_val(leaf_blocks));
+    }
 }
 
 /// Starts fetching the cache lines of `bytes` bytes at `p` (a hint: nothing is read).

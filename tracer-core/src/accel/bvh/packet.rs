@@ -13,8 +13,9 @@ use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use super::{
-    farther, leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Node, RayF32, F32_SAFE,
-    FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH, WIDTH,
+    farther, leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Fetch, Node, RayF32,
+    F32_SAFE, FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH,
+    SUBTREE_FETCH_SLOTS, WIDTH,
 };
 use glam::DVec3;
 
@@ -237,15 +238,17 @@ impl Bvh {
     /// by primitive slot, say). At most [`PACKET`] rays; rays the f32 tests cannot take
     /// make the whole packet go ray by ray.
     ///
-    /// `fetch(primitives)` is a hint: at a node with leaf children every ray's leaves are
-    /// named to it before any is handed to `leaf`, so the owner can start loading them all
-    /// (in a large mesh each is a DRAM miss, and loaded one after another they add up).
+    /// `fetch(primitives, what)` is a hint: at a node with leaf children every ray's leaves
+    /// are named to it ([`Fetch::Leaf`]) before any is handed to `leaf`, so the owner can
+    /// start loading them all (in a large mesh each is a DRAM miss, and loaded one after
+    /// another they add up); where the tree has [`Bvh::spans`], a small subtree's leaves are
+    /// named ([`Fetch::Subtree`]) as its node is fetched, before the packet reaches it.
     #[inline(always)]
     pub fn traverse_packet(
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
-        fetch: impl Fn(Range<usize>),
+        fetch: impl Fn(Range<usize>, Fetch),
         mut leaf: impl FnMut(usize, Range<usize>, &mut f64),
     ) {
         self.packet::<NEAREST_FIRST>(rays, t_max, fetch, |i, range, t| {
@@ -266,7 +269,7 @@ impl Bvh {
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
-        fetch: impl Fn(Range<usize>),
+        fetch: impl Fn(Range<usize>, Fetch),
         leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
     ) -> u64 {
         self.packet::<FARTHEST_FIRST>(rays, t_max, fetch, leaf)
@@ -279,7 +282,7 @@ impl Bvh {
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
-        fetch: impl Fn(Range<usize>),
+        fetch: impl Fn(Range<usize>, Fetch),
         mut leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
     ) -> u64 {
         assert!(rays.len() <= PACKET && t_max.len() == rays.len());
@@ -333,7 +336,7 @@ impl Bvh {
         packet: &PacketBounds,
         rays: &[Ray],
         t_max: &mut [f64],
-        fetch: impl Fn(Range<usize>),
+        fetch: impl Fn(Range<usize>, Fetch),
         leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
     ) -> u64 {
         // SAFETY: this function only runs where AVX2 is available.
@@ -398,6 +401,7 @@ impl Bvh {
                 }
                 None
             },
+            |_| {},
         )
     }
 
@@ -412,7 +416,7 @@ impl Bvh {
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
-        fetch: impl Fn(Range<usize>),
+        fetch: impl Fn(Range<usize>, Fetch),
         mut leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
         packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
         ray_hit: impl Fn(&RayF32, &Node, f64) -> (u32, [f32; WIDTH]),
@@ -452,7 +456,7 @@ impl Bvh {
                             l &= l - 1;
                             if d[c] as f64 <= t_max[i] {
                                 let first = node.index[c] as usize;
-                                fetch(first..first + node.count[c] as usize);
+                                fetch(first..first + node.count[c] as usize, Fetch::Leaf);
                             }
                         }
                         reached[reach].write((i as u8, m & leaves, d));
@@ -487,6 +491,13 @@ impl Bvh {
                 }
                 Some(split)
             },
+            |child| {
+                if let Some(&[lo, hi]) = self.spans.get(child as usize) {
+                    if hi > lo && hi - lo <= SUBTREE_FETCH_SLOTS {
+                        fetch(lo as usize..hi as usize, Fetch::Subtree);
+                    }
+                }
+            },
         )
     }
 
@@ -505,6 +516,7 @@ impl Bvh {
         all: u64,
         packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
         mut per_ray: impl FnMut(&Node, u32, u32, u64, &mut [f64], &mut u64) -> Option<[u64; WIDTH]>,
+        fetch_below: impl Fn(u32),
     ) -> u64 {
         let farthest = |t_max: &[f64]| t_max.iter().fold(f64::NEG_INFINITY, |a, &t| a.max(t));
         let mut far = farthest(t_max);
@@ -552,6 +564,7 @@ impl Bvh {
                 inner &= inner - 1;
                 let mut near = (node.index[c], dist[c], rays_of(c));
                 prefetch(&self.nodes, near.0);
+                fetch_below(near.0);
                 if inner != 0 {
                     // Two or more interior children: push all but the first in `ORDER`, so
                     // that they pop in order.
@@ -562,6 +575,7 @@ impl Bvh {
                         inner &= inner - 1;
                         let mut child = (node.index[c], dist[c], rays_of(c));
                         prefetch(&self.nodes, child.0);
+                        fetch_below(child.0);
                         if farther::<ORDER>(near.1, child.1) {
                             std::mem::swap(&mut child, &mut near);
                         }
@@ -733,7 +747,7 @@ mod tests {
             .collect();
         let mut limits = vec![f64::INFINITY; rays.len()];
         let mut met = 0;
-        bvh.traverse_packet(&rays, &mut limits, |_| {}, |_, _, _| met += 1);
+        bvh.traverse_packet(&rays, &mut limits, |_, _| {}, |_, _, _| met += 1);
         assert_eq!(met, 0);
         let packet = PacketBounds::new(&rays).unwrap();
         assert!(!packet.may_hit(&bvh.bounds(), f64::INFINITY));
@@ -814,7 +828,7 @@ mod tests {
             "{blocked} blocked, {open} open"
         );
         assert_eq!(
-            Bvh::build(&[]).traverse_packet_any(&[], &mut [], |_| {}, |_, _, _| true),
+            Bvh::build(&[]).traverse_packet_any(&[], &mut [], |_, _| {}, |_, _, _| true),
             0
         );
     }
