@@ -773,6 +773,32 @@ mod tests {
     }
 
     #[test]
+    fn spans_cover_exactly_the_leaves_below_each_node() {
+        let bvh = Bvh::build_aligned(&boxes(5000), 4).with_spans();
+        assert_eq!(bvh.spans.len(), bvh.nodes.len());
+        // The slots of the leaves below `n`, by walking the subtree.
+        fn below(bvh: &Bvh, n: usize, out: &mut Vec<u32>) {
+            let node = &bvh.nodes[n];
+            for c in (0..WIDTH).filter(|&c| node.index[c] != NO_CHILD) {
+                if node.count[c] > 0 {
+                    out.extend(node.index[c]..node.index[c] + node.count[c]);
+                } else {
+                    below(bvh, node.index[c] as usize, out);
+                }
+            }
+        }
+        for n in 0..bvh.nodes.len() {
+            let mut slots = Vec::new();
+            below(&bvh, n, &mut slots);
+            let lo = *slots.iter().min().unwrap();
+            let hi = *slots.iter().max().unwrap() + 1;
+            assert_eq!(bvh.spans[n], [lo, hi], "node {n}");
+        }
+        assert_eq!(bvh.spans[0], [0, bvh.order.len() as u32]);
+        assert!(Bvh::build(&[]).with_spans().spans.is_empty());
+    }
+
+    #[test]
     fn a_single_primitive_and_identical_centroids_make_one_leaf() {
         let b = Aabb {
             min: DVec3::ZERO,

@@ -242,7 +242,8 @@ impl Bvh {
     /// are named to it ([`Fetch::Leaf`]) before any is handed to `leaf`, so the owner can
     /// start loading them all (in a large mesh each is a DRAM miss, and loaded one after
     /// another they add up); where the tree has [`Bvh::spans`], a small subtree's leaves are
-    /// named ([`Fetch::Subtree`]) as its node is fetched, before the packet reaches it.
+    /// named ([`Fetch::Subtree`]) as its node is fetched, before the packet reaches it. A
+    /// packet that goes ray by ray (see above) names nothing.
     #[inline(always)]
     pub fn traverse_packet(
         &self,
@@ -656,7 +657,7 @@ mod tests {
         bvh.traverse_packet(
             rays,
             &mut limits,
-            |_| {},
+            |_, _| {},
             |i, range, _| packet[i].push(range.start),
         );
         for p in &mut packet {
@@ -702,6 +703,52 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn every_leaf_is_named_to_fetch_before_it_is_tested() {
+        use std::cell::RefCell;
+        let prims = boxes(3000, 1.0, 0.0, 21);
+        let bvh = Bvh::build_aligned(&prims, 4).with_spans();
+        let eye = DVec3::new(5.0, 5.0, -20.0);
+        let rays: Vec<Ray> = (0..64)
+            .map(|k| {
+                // Off the axes: an axis-parallel ray would send the packet down the
+                // single-ray path, which names nothing.
+                let d = DVec3::new(
+                    (k % 8) as f64 * 0.04 + 0.01,
+                    (k / 8) as f64 * 0.04 + 0.01,
+                    1.0,
+                );
+                Ray::new(eye, d.normalize())
+            })
+            .collect();
+        let fetched = RefCell::new(Vec::new());
+        let mut tested = 0;
+        let mut limits = vec![f64::INFINITY; rays.len()];
+        bvh.traverse_packet(
+            &rays,
+            &mut limits,
+            |range, what| {
+                if what == Fetch::Subtree {
+                    assert!(range.len() <= SUBTREE_FETCH_SLOTS as usize);
+                }
+                fetched.borrow_mut().push((range, what));
+            },
+            |_, range, _| {
+                assert!(fetched.borrow().contains(&(range, Fetch::Leaf)));
+                tested += 1;
+            },
+        );
+        let subtrees = fetched
+            .borrow()
+            .iter()
+            .filter(|f| f.1 == Fetch::Subtree)
+            .count();
+        assert!(
+            tested > 50 && subtrees > 10,
+            "{tested} leaves, {subtrees} subtrees"
+        );
     }
 
     #[test]
@@ -805,7 +852,7 @@ mod tests {
                 let mask = bvh.traverse_packet_any(
                     &only,
                     &mut limits,
-                    |_| {},
+                    |_, _| {},
                     |i, s, t| hit(&only[i], s, *t),
                 );
                 for (i, &alone) in single.iter().enumerate() {
