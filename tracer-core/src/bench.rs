@@ -363,7 +363,7 @@ fn bytes_per_triangle(world: &World) -> f64 {
 }
 
 /// The heap bytes of one mesh: its triangles' corners, vertex indices, normals, texture
-/// coordinates, f32 triangle blocks and BVH (nodes and leaf order), as stored.
+/// coordinates, f32 triangle blocks and BVH (nodes, leaf order and spans), as stored.
 pub fn mesh_bytes(mesh: &Mesh) -> usize {
     size_of_val(&mesh.corners[..])
         + size_of_val(&mesh.indices[..])
@@ -372,6 +372,7 @@ pub fn mesh_bytes(mesh: &Mesh) -> usize {
         + size_of_val(&mesh.blocks[..])
         + size_of_val(&mesh.bvh.nodes[..])
         + size_of_val(&mesh.bvh.order[..])
+        + size_of_val(&mesh.bvh.spans[..])
 }
 
 /// Traces `measure`'s rays in parallel, one rayon job per work item ([`work_items`]).

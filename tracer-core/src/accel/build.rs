@@ -199,6 +199,7 @@ impl Bvh {
             order: out.order,
             bounds: Some(root_bounds),
             depth: out.depth,
+            spans: Vec::new(),
         }
     }
 }

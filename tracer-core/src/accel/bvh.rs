@@ -34,7 +34,24 @@ pub struct Bvh {
     pub order: Vec<u32>,
     pub(super) bounds: Option<Aabb>,
     pub(super) depth: usize,
+    /// Per node, when made by [`Bvh::with_spans`]: the first and one past the last primitive
+    /// slot of the leaves below it, so that packet traversal can have a small subtree's
+    /// leaves fetched as early as its node (see [`Fetch::Subtree`]). Empty otherwise.
+    pub spans: Vec<[u32; 2]>,
 }
+
+/// What a packet traversal's `fetch` hint names (see [`Bvh::traverse_packet`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fetch {
+    /// A leaf some ray of the packet is about to test.
+    Leaf,
+    /// The leaves below a node the packet is about to enter (at most
+    /// [`SUBTREE_FETCH_SLOTS`] slots): some of them will likely be tested.
+    Subtree,
+}
+
+/// The most primitive slots a [`Fetch::Subtree`] hint names: a node of leaves holds 8 to 32.
+pub const SUBTREE_FETCH_SLOTS: u32 = 32;
 
 /// The deepest binary tree the builder makes; a wide node is never deeper.
 pub(super) const MAX_DEPTH: usize = 96;
@@ -59,6 +76,30 @@ impl Bvh {
 
     pub fn depth(&self) -> usize {
         self.depth
+    }
+
+    /// The tree with [`Bvh::spans`] filled in (for large trees, where a leaf's data is a
+    /// DRAM miss that can be started as early as its node's).
+    pub fn with_spans(mut self) -> Bvh {
+        let mut spans = vec![[u32::MAX, 0]; self.nodes.len()];
+        // Children come after their parent in `nodes`, so one backward pass has every
+        // child's span ready before its parent takes the union.
+        for n in (0..self.nodes.len()).rev() {
+            let node = &self.nodes[n];
+            let mut span = [u32::MAX, 0];
+            for c in (0..WIDTH).filter(|&c| node.index[c] != NO_CHILD) {
+                let [lo, hi] = if node.count[c] > 0 {
+                    [node.index[c], node.index[c] + node.count[c]]
+                } else {
+                    debug_assert!(node.index[c] as usize > n, "a child before its parent");
+                    spans[node.index[c] as usize]
+                };
+                span = [span[0].min(lo), span[1].max(hi)];
+            }
+            spans[n] = span;
+        }
+        self.spans = spans;
+        self
     }
 
     /// Boxes that together hold every primitive: the children of the root and, where those
@@ -729,6 +770,32 @@ mod tests {
             }
         }
         assert!(hits > 1000, "{hits} box hits");
+    }
+
+    #[test]
+    fn spans_cover_exactly_the_leaves_below_each_node() {
+        let bvh = Bvh::build_aligned(&boxes(5000), 4).with_spans();
+        assert_eq!(bvh.spans.len(), bvh.nodes.len());
+        // The slots of the leaves below `n`, by walking the subtree.
+        fn below(bvh: &Bvh, n: usize, out: &mut Vec<u32>) {
+            let node = &bvh.nodes[n];
+            for c in (0..WIDTH).filter(|&c| node.index[c] != NO_CHILD) {
+                if node.count[c] > 0 {
+                    out.extend(node.index[c]..node.index[c] + node.count[c]);
+                } else {
+                    below(bvh, node.index[c] as usize, out);
+                }
+            }
+        }
+        for n in 0..bvh.nodes.len() {
+            let mut slots = Vec::new();
+            below(&bvh, n, &mut slots);
+            let lo = *slots.iter().min().unwrap();
+            let hi = *slots.iter().max().unwrap() + 1;
+            assert_eq!(bvh.spans[n], [lo, hi], "node {n}");
+        }
+        assert_eq!(bvh.spans[0], [0, bvh.order.len() as u32]);
+        assert!(Bvh::build(&[]).with_spans().spans.is_empty());
     }
 
     #[test]

@@ -7,5 +7,5 @@ mod bvh;
 mod memory;
 
 pub use build::PADDING;
-pub use bvh::{Bvh, Node, PacketBounds, PACKET};
+pub use bvh::{Bvh, Fetch, Node, PacketBounds, PACKET};
 pub(crate) use memory::with_capacity_huge;

@@ -14,5 +14,6 @@ pub use ray::{Ray, TriangleRay};
 pub use sphere::intersect_unit_sphere_scaled;
 pub use transform::Transform;
 pub use triangle::{
-    any_candidate, intersect_triangle, TriangleBlock, TriangleHit, TriangleRayF32, BLOCK,
+    any_candidate, intersect_triangle, prefetch_blocks, prefetch_leaf, TriangleBlock, TriangleHit,
+    TriangleRayF32, BLOCK,
 };

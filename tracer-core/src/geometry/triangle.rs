@@ -342,6 +342,29 @@ pub fn any_candidate(
     false
 }
 
+/// Starts fetching the f32 blocks and the f64 corners of the triangles in `slots` (a hint:
+/// nothing is read), so that a caller about to test several leaves has all their loads in
+/// flight at once.
+#[inline(always)]
+pub fn prefetch_leaf(
+    blocks: &[TriangleBlock],
+    corners: &[[DVec3; 3]],
+    slots: std::ops::Range<usize>,
+) {
+    prefetch_blocks(blocks, slots.clone());
+    if let Some(leaf_corners) = corners.get(slots) {
+        prefetch(leaf_corners.as_ptr(), size_of_val(leaf_corners));
+    }
+}
+
+/// Starts fetching the f32 blocks of the triangles in `slots` (a hint: nothing is read).
+#[inline(always)]
+pub fn prefetch_blocks(blocks: &[TriangleBlock], slots: std::ops::Range<usize>) {
+    if let Some(leaf_blocks) = blocks.get(slots.start / BLOCK..slots.end.div_ceil(BLOCK)) {
+        prefetch(leaf_blocks.as_ptr(), size_of_val(leaf_blocks));
+    }
+}
+
 /// Starts fetching the cache lines of `bytes` bytes at `p` (a hint: nothing is read).
 #[inline(always)]
 #[allow(unused_unsafe)]

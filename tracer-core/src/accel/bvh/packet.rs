@@ -13,8 +13,9 @@ use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use super::{
-    farther, leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Node, RayF32, F32_SAFE,
-    FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH, WIDTH,
+    farther, leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Fetch, Node, RayF32,
+    F32_SAFE, FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH,
+    SUBTREE_FETCH_SLOTS, WIDTH,
 };
 use glam::DVec3;
 
@@ -236,14 +237,22 @@ impl Bvh {
     /// owner's rule for the nearest hit must not depend on the order (ties at equal t broken
     /// by primitive slot, say). At most [`PACKET`] rays; rays the f32 tests cannot take
     /// make the whole packet go ray by ray.
+    ///
+    /// `fetch(primitives, what)` is a hint: at a node with leaf children every ray's leaves
+    /// are named to it ([`Fetch::Leaf`]) before any is handed to `leaf`, so the owner can
+    /// start loading them all (in a large mesh each is a DRAM miss, and loaded one after
+    /// another they add up); where the tree has [`Bvh::spans`], a small subtree's leaves are
+    /// named ([`Fetch::Subtree`]) as its node is fetched, before the packet reaches it. A
+    /// packet that goes ray by ray (see above) names nothing.
     #[inline(always)]
     pub fn traverse_packet(
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
+        fetch: impl Fn(Range<usize>, Fetch),
         mut leaf: impl FnMut(usize, Range<usize>, &mut f64),
     ) {
-        self.packet::<NEAREST_FIRST>(rays, t_max, |i, range, t| {
+        self.packet::<NEAREST_FIRST>(rays, t_max, fetch, |i, range, t| {
             leaf(i, range, t);
             false
         });
@@ -255,14 +264,16 @@ impl Bvh {
     /// when every ray has. Children are visited farthest first by the packet's entry bound.
     /// Returns the mask of the rays `leaf` found a hit for; every other ray was handed at
     /// least the leaves `traverse_any` would hand it, so the answers are the same.
+    /// `fetch` as for [`Bvh::traverse_packet`].
     #[inline(always)]
     pub fn traverse_packet_any(
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
+        fetch: impl Fn(Range<usize>, Fetch),
         leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
     ) -> u64 {
-        self.packet::<FARTHEST_FIRST>(rays, t_max, leaf)
+        self.packet::<FARTHEST_FIRST>(rays, t_max, fetch, leaf)
     }
 
     /// [`Bvh::traverse_packet`] or [`Bvh::traverse_packet_any`] by `ORDER`; returns the rays
@@ -272,6 +283,7 @@ impl Bvh {
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
+        fetch: impl Fn(Range<usize>, Fetch),
         mut leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
     ) -> u64 {
         assert!(rays.len() <= PACKET && t_max.len() == rays.len());
@@ -299,11 +311,14 @@ impl Bvh {
         if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2.
             return all
-                & !unsafe { self.traverse_packet_avx2::<ORDER>(&packet, rays, t_max, leaf) };
+                & !unsafe {
+                    self.traverse_packet_avx2::<ORDER>(&packet, rays, t_max, fetch, leaf)
+                };
         }
         all & !self.traverse_packet_with::<ORDER>(
             rays,
             t_max,
+            fetch,
             leaf,
             |node, far| packet.hit(node, far),
             |r, node, t_max| r.hit(node, t_max),
@@ -322,12 +337,14 @@ impl Bvh {
         packet: &PacketBounds,
         rays: &[Ray],
         t_max: &mut [f64],
+        fetch: impl Fn(Range<usize>, Fetch),
         leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
     ) -> u64 {
         // SAFETY: this function only runs where AVX2 is available.
         self.traverse_packet_with::<ORDER>(
             rays,
             t_max,
+            fetch,
             leaf,
             |node, far| unsafe { packet.hit_avx2(node, far) },
             |r, node, t_max| unsafe { r.hit_avx2(node, t_max) },
@@ -385,6 +402,7 @@ impl Bvh {
                 }
                 None
             },
+            |_| {},
         )
     }
 
@@ -399,6 +417,7 @@ impl Bvh {
         &self,
         rays: &[Ray],
         t_max: &mut [f64],
+        fetch: impl Fn(Range<usize>, Fetch),
         mut leaf: impl FnMut(usize, Range<usize>, &mut f64) -> bool,
         packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
         ray_hit: impl Fn(&RayF32, &Node, f64) -> (u32, [f32; WIDTH]),
@@ -407,6 +426,9 @@ impl Bvh {
         // misses everything never pays for it).
         let mut single = [const { MaybeUninit::<RayF32>::uninit() }; PACKET];
         let mut ready = false;
+        // The rays that reach leaves at a node, with their leaf masks and entry distances:
+        // all are fetched before the first is tested. Only the first `reach` are written.
+        let mut reached = [const { MaybeUninit::<(u8, u32, [f32; WIDTH])>::uninit() }; PACKET];
         let all = u64::MAX >> (64 - rays.len());
         self.packet_walk::<ORDER>(
             t_max,
@@ -420,24 +442,26 @@ impl Bvh {
                     ready = true;
                 }
                 let mut split = [0u64; WIDTH];
+                let mut reach = 0;
                 let mut a = active;
-                'rays: while a != 0 {
+                while a != 0 {
                     let i = a.trailing_zeros() as usize;
                     a &= a - 1;
                     // SAFETY: the first `rays.len()` entries were written above.
                     let r = unsafe { single[i].assume_init_ref() };
                     let (m, d) = ray_hit(r, node, t_max[i]);
                     let mut l = m & leaves;
-                    while l != 0 {
-                        let c = l.trailing_zeros() as usize;
-                        l &= l - 1;
-                        if d[c] as f64 <= t_max[i] {
-                            let first = node.index[c] as usize;
-                            if leaf(i, first..first + node.count[c] as usize, &mut t_max[i]) {
-                                *live &= !(1 << i);
-                                continue 'rays;
+                    if l != 0 {
+                        while l != 0 {
+                            let c = l.trailing_zeros() as usize;
+                            l &= l - 1;
+                            if d[c] as f64 <= t_max[i] {
+                                let first = node.index[c] as usize;
+                                fetch(first..first + node.count[c] as usize, Fetch::Leaf);
                             }
                         }
+                        reached[reach].write((i as u8, m & leaves, d));
+                        reach += 1;
                     }
                     let mut n = m & inner;
                     while n != 0 {
@@ -446,7 +470,34 @@ impl Bvh {
                         split[c] |= 1 << i;
                     }
                 }
+                for entry in &reached[..reach] {
+                    // SAFETY: the first `reach` entries were written above.
+                    let (i, mut l, d) = unsafe { entry.assume_init_read() };
+                    let i = i as usize;
+                    while l != 0 {
+                        let c = l.trailing_zeros() as usize;
+                        l &= l - 1;
+                        if d[c] as f64 <= t_max[i] {
+                            let first = node.index[c] as usize;
+                            if leaf(i, first..first + node.count[c] as usize, &mut t_max[i]) {
+                                *live &= !(1 << i);
+                                break;
+                            }
+                        }
+                    }
+                }
+                // A ray that found its hit (any-hit) enters no child.
+                for s in &mut split {
+                    *s &= *live;
+                }
                 Some(split)
+            },
+            |child| {
+                if let Some(&[lo, hi]) = self.spans.get(child as usize) {
+                    if hi > lo && hi - lo <= SUBTREE_FETCH_SLOTS {
+                        fetch(lo as usize..hi as usize, Fetch::Subtree);
+                    }
+                }
             },
         )
     }
@@ -466,6 +517,7 @@ impl Bvh {
         all: u64,
         packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
         mut per_ray: impl FnMut(&Node, u32, u32, u64, &mut [f64], &mut u64) -> Option<[u64; WIDTH]>,
+        fetch_below: impl Fn(u32),
     ) -> u64 {
         let farthest = |t_max: &[f64]| t_max.iter().fold(f64::NEG_INFINITY, |a, &t| a.max(t));
         let mut far = farthest(t_max);
@@ -513,6 +565,7 @@ impl Bvh {
                 inner &= inner - 1;
                 let mut near = (node.index[c], dist[c], rays_of(c));
                 prefetch(&self.nodes, near.0);
+                fetch_below(near.0);
                 if inner != 0 {
                     // Two or more interior children: push all but the first in `ORDER`, so
                     // that they pop in order.
@@ -523,6 +576,7 @@ impl Bvh {
                         inner &= inner - 1;
                         let mut child = (node.index[c], dist[c], rays_of(c));
                         prefetch(&self.nodes, child.0);
+                        fetch_below(child.0);
                         if farther::<ORDER>(near.1, child.1) {
                             std::mem::swap(&mut child, &mut near);
                         }
@@ -600,7 +654,12 @@ mod tests {
             .collect();
         let mut packet = vec![Vec::new(); rays.len()];
         let mut limits = vec![t_max; rays.len()];
-        bvh.traverse_packet(rays, &mut limits, |i, range, _| packet[i].push(range.start));
+        bvh.traverse_packet(
+            rays,
+            &mut limits,
+            |_, _| {},
+            |i, range, _| packet[i].push(range.start),
+        );
         for p in &mut packet {
             p.sort();
         }
@@ -647,6 +706,52 @@ mod tests {
     }
 
     #[test]
+    fn every_leaf_is_named_to_fetch_before_it_is_tested() {
+        use std::cell::RefCell;
+        let prims = boxes(3000, 1.0, 0.0, 21);
+        let bvh = Bvh::build_aligned(&prims, 4).with_spans();
+        let eye = DVec3::new(5.0, 5.0, -20.0);
+        let rays: Vec<Ray> = (0..64)
+            .map(|k| {
+                // Off the axes: an axis-parallel ray would send the packet down the
+                // single-ray path, which names nothing.
+                let d = DVec3::new(
+                    (k % 8) as f64 * 0.04 + 0.01,
+                    (k / 8) as f64 * 0.04 + 0.01,
+                    1.0,
+                );
+                Ray::new(eye, d.normalize())
+            })
+            .collect();
+        let fetched = RefCell::new(Vec::new());
+        let mut tested = 0;
+        let mut limits = vec![f64::INFINITY; rays.len()];
+        bvh.traverse_packet(
+            &rays,
+            &mut limits,
+            |range, what| {
+                if what == Fetch::Subtree {
+                    assert!(range.len() <= SUBTREE_FETCH_SLOTS as usize);
+                }
+                fetched.borrow_mut().push((range, what));
+            },
+            |_, range, _| {
+                assert!(fetched.borrow().contains(&(range, Fetch::Leaf)));
+                tested += 1;
+            },
+        );
+        let subtrees = fetched
+            .borrow()
+            .iter()
+            .filter(|f| f.1 == Fetch::Subtree)
+            .count();
+        assert!(
+            tested > 50 && subtrees > 10,
+            "{tested} leaves, {subtrees} subtrees"
+        );
+    }
+
+    #[test]
     fn packets_with_unsafe_or_mixed_rays_still_meet_every_leaf() {
         let prims = boxes(2000, 1.0, 0.0, 5);
         let bvh = Bvh::build(&prims);
@@ -689,7 +794,7 @@ mod tests {
             .collect();
         let mut limits = vec![f64::INFINITY; rays.len()];
         let mut met = 0;
-        bvh.traverse_packet(&rays, &mut limits, |_, _, _| met += 1);
+        bvh.traverse_packet(&rays, &mut limits, |_, _| {}, |_, _, _| met += 1);
         assert_eq!(met, 0);
         let packet = PacketBounds::new(&rays).unwrap();
         assert!(!packet.may_hit(&bvh.bounds(), f64::INFINITY));
@@ -744,8 +849,12 @@ mod tests {
                     .collect();
                 let only: Vec<Ray> = rays.iter().map(|r| r.0).collect();
                 let mut limits: Vec<f64> = rays.iter().map(|r| r.1).collect();
-                let mask =
-                    bvh.traverse_packet_any(&only, &mut limits, |i, s, t| hit(&only[i], s, *t));
+                let mask = bvh.traverse_packet_any(
+                    &only,
+                    &mut limits,
+                    |_, _| {},
+                    |i, s, t| hit(&only[i], s, *t),
+                );
                 for (i, &alone) in single.iter().enumerate() {
                     assert_eq!(
                         mask & (1 << i) != 0,
@@ -766,7 +875,7 @@ mod tests {
             "{blocked} blocked, {open} open"
         );
         assert_eq!(
-            Bvh::build(&[]).traverse_packet_any(&[], &mut [], |_, _, _| true),
+            Bvh::build(&[]).traverse_packet_any(&[], &mut [], |_, _| {}, |_, _, _| true),
             0
         );
     }
