@@ -4,16 +4,34 @@
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::process::Command;
+use std::process::{Command, Output};
+
+/// `coordinator report` on the course's cornell_box, the options left to the caller.
+fn cornell_box_report() -> Command {
+    let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/scenes/course/cornell_box.scene");
+    let mut command = Command::new(env!("CARGO_BIN_EXE_coordinator"));
+    command.arg("report").arg(scene);
+    command
+}
+
+/// A fresh output folder per test and process, so parallel test runs do not collide.
+fn report_dir(name: &str) -> PathBuf {
+    std::env::temp_dir().join(format!("tessera-{name}-{}", std::process::id()))
+}
+
+fn assert_succeeded(output: &Output) {
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
 
 #[test]
 fn a_small_farm_report_runs_and_error_falls_with_samples() {
-    let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/scenes/course/cornell_box.scene");
-    let out = std::env::temp_dir().join(format!("tessera-farm-report-{}", std::process::id()));
-    let output = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .arg("report")
-        .arg(&scene)
+    let out = report_dir("farm-report");
+    let output = cornell_box_report()
         .args([
             "--width",
             "64",
@@ -34,11 +52,7 @@ fn a_small_farm_report_runs_and_error_falls_with_samples() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded(&output);
     for file in ["report.csv", "report.md", "error_vs_time.png"] {
         assert!(out.join(file).is_file(), "{file} is missing");
     }
@@ -85,12 +99,8 @@ fn a_report_rejects_impossible_worker_counts() {
 
 #[test]
 fn repeated_adaptive_runs_are_listed_paired_and_summarised_by_their_median() {
-    let scene = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/scenes/course/cornell_box.scene");
-    let out = std::env::temp_dir().join(format!("tessera-paired-report-{}", std::process::id()));
-    let output = Command::new(env!("CARGO_BIN_EXE_coordinator"))
-        .arg("report")
-        .arg(&scene)
+    let out = report_dir("paired-report");
+    let output = cornell_box_report()
         .args(["--width", "64", "--height", "48", "--reference-spp", "64"])
         .args(["--spp", "4,16", "--workers", "1", "--threads", "2"])
         .args(["--no-baseline", "--adaptive", "0.01", "--repeats", "3"])
@@ -98,11 +108,7 @@ fn repeated_adaptive_runs_are_listed_paired_and_summarised_by_their_median() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
+    assert_succeeded(&output);
     // Every run: 2 budgets × 3 repeats × (uniform, adaptive), uniform first in each pair.
     let runs = std::fs::read_to_string(out.join("runs.csv")).unwrap();
     let lines: Vec<&str> = runs.lines().skip(1).collect();

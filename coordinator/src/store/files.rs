@@ -600,11 +600,16 @@ mod tests {
         }
     }
 
-    const FRAME_3X2: Frame = Frame {
-        number: 0,
-        width: 3,
-        height: 2,
-    };
+    /// Frame 0 of a job, the only frame most tests need.
+    const fn first_frame(width: u32, height: u32) -> Frame {
+        Frame {
+            number: 0,
+            width,
+            height,
+        }
+    }
+
+    const FRAME_3X2: Frame = first_frame(3, 2);
 
     fn tiles_assemble_into_an_image_in(files: &Files) {
         let rects = TileRect::grid(3, 2, 2);
@@ -652,11 +657,7 @@ mod tests {
     #[test]
     fn in_memory_a_tile_outside_its_frame_is_refused_and_a_late_copy_leaves_the_image_alone() {
         let files = Files::in_memory();
-        let frame = Frame {
-            number: 0,
-            width: 2,
-            height: 2,
-        };
+        let frame = first_frame(2, 2);
         let rect = TileRect::new(0, 0, 2, 2);
         let half = pixels_to_bytes(&[0.5; 12]);
         let outside = files.put_tile(1, frame, 0, 4, TileRect::new(1, 1, 2, 2), &half);
@@ -679,11 +680,7 @@ mod tests {
     }
 
     fn a_tile_never_written_is_missing_not_black_in(files: &Files) {
-        let frame = Frame {
-            number: 0,
-            width: 4,
-            height: 4,
-        };
+        let frame = first_frame(4, 4);
         let rect = TileRect::new(0, 0, 4, 4);
         let pixels = pixels_to_bytes(&[0.5; 48]);
         // Tile 3 extends the file past tile 1's slot, which stays a hole.

@@ -638,6 +638,22 @@ mod tests {
             .collect()
     }
 
+    /// A full packet from (5, 5, −20): an 8×8 fan of directions (x, y) = `step` × (column,
+    /// row) + `offset`, towards `z`.
+    fn fan(step: f64, offset: f64, z: f64) -> Vec<Ray> {
+        let eye = DVec3::new(5.0, 5.0, -20.0);
+        (0..PACKET)
+            .map(|k| {
+                let d = DVec3::new(
+                    (k % 8) as f64 * step + offset,
+                    (k / 8) as f64 * step + offset,
+                    z,
+                );
+                Ray::new(eye, d.normalize())
+            })
+            .collect()
+    }
+
     /// The leaves (by first slot) each ray of `rays` is handed, single-ray and packet.
     fn leaves_met(bvh: &Bvh, rays: &[Ray], t_max: f64) -> (Vec<Vec<usize>>, Vec<Vec<usize>>) {
         let single = rays
@@ -710,19 +726,9 @@ mod tests {
         use std::cell::RefCell;
         let prims = boxes(3000, 1.0, 0.0, 21);
         let bvh = Bvh::build_aligned(&prims, 4).with_spans();
-        let eye = DVec3::new(5.0, 5.0, -20.0);
-        let rays: Vec<Ray> = (0..64)
-            .map(|k| {
-                // Off the axes: an axis-parallel ray would send the packet down the
-                // single-ray path, which names nothing.
-                let d = DVec3::new(
-                    (k % 8) as f64 * 0.04 + 0.01,
-                    (k / 8) as f64 * 0.04 + 0.01,
-                    1.0,
-                );
-                Ray::new(eye, d.normalize())
-            })
-            .collect();
+        // Off the axes: an axis-parallel ray would send the packet down the single-ray path,
+        // which names nothing.
+        let rays = fan(0.04, 0.01, 1.0);
         let fetched = RefCell::new(Vec::new());
         let mut tested = 0;
         let mut limits = vec![f64::INFINITY; rays.len()];
@@ -780,25 +786,15 @@ mod tests {
     fn a_packet_that_misses_the_tree_meets_no_leaf() {
         let prims = boxes(500, 1.0, 0.0, 9);
         let bvh = Bvh::build(&prims);
-        let eye = DVec3::new(5.0, 5.0, -20.0);
         // Looking away from the boxes.
-        let rays: Vec<Ray> = (0..64)
-            .map(|k| {
-                let d = DVec3::new(
-                    (k % 8) as f64 * 0.01 + 0.003,
-                    (k / 8) as f64 * 0.01 + 0.003,
-                    -1.0,
-                );
-                Ray::new(eye, d.normalize())
-            })
-            .collect();
+        let rays = fan(0.01, 0.003, -1.0);
         let mut limits = vec![f64::INFINITY; rays.len()];
         let mut met = 0;
         bvh.traverse_packet(&rays, &mut limits, |_, _| {}, |_, _, _| met += 1);
         assert_eq!(met, 0);
         let packet = PacketBounds::new(&rays).unwrap();
         assert!(!packet.may_hit(&bvh.bounds(), f64::INFINITY));
-        let behind = Ray::new(eye, DVec3::new(0.01, 0.02, 1.0).normalize());
+        let behind = Ray::new(rays[0].origin, DVec3::new(0.01, 0.02, 1.0).normalize());
         assert!(PacketBounds::new(&[behind])
             .unwrap()
             .may_hit(&bvh.bounds(), f64::INFINITY));
