@@ -252,7 +252,9 @@ impl<'a> EyeRays<'a> {
 
     /// Sample `sample` of pixel (x, y), jittered within stratum `stratum` (see
     /// [`EyeRays::strata_order`]). Its random numbers depend on the sample index alone.
-    #[inline]
+    /// Always inlined (the eye ray is a large share of a simple scene's sample), its rare
+    /// paths (a moving camera, a lens) kept out of line.
+    #[inline(always)]
     pub fn sample_in(&self, x: u32, y: u32, sample: u32, stratum: u32) -> EyeSample {
         let seed = self.seed;
         let mut rng = Rng::for_sample(seed, x, y, sample);
@@ -284,9 +286,7 @@ impl<'a> EyeRays<'a> {
         let (w, h) = (self.width as f64, self.height as f64);
         let (px, py) = (x as f64 + jx, y as f64 + jy);
         let ray = if camera.aperture > 0.0 {
-            let mut r = Rng::for_stream(seed, x, y, sample, Stream::Lens);
-            let lens = concentric_disk(r.next_f64(), r.next_f64());
-            camera.lens_ray(px, py, w, h, lens)
+            lens_ray(camera, seed, (x, y, sample), (px, py), (w, h))
         } else {
             camera.ray(px, py, w, h)
         }
@@ -303,8 +303,26 @@ impl<'a> EyeRays<'a> {
     }
 }
 
+/// A thin-lens eye ray through image point (px, py) of a `w`×`h` image, its lens point drawn
+/// from the lens stream of pixel (x, y)'s sample `sample`.
+#[cold]
+#[inline(never)]
+fn lens_ray(
+    camera: &Camera,
+    seed: u64,
+    (x, y, sample): (u32, u32, u32),
+    (px, py): (f64, f64),
+    (w, h): (f64, f64),
+) -> Ray {
+    let mut r = Rng::for_stream(seed, x, y, sample, Stream::Lens);
+    let lens = concentric_disk(r.next_f64(), r.next_f64());
+    camera.lens_ray(px, py, w, h, lens)
+}
+
 /// The scene's camera at `time`, before any override, for a `width`×`height` image, placed
 /// relative to the world point `origin`.
+#[cold]
+#[inline(never)]
 fn camera_at(desc: &CameraDesc, origin: DVec3, width: u32, height: u32, time: f64) -> Camera {
     let (position, orientation) = desc.at(time);
     Camera::from_orientation(
