@@ -512,8 +512,10 @@ impl Farm {
                 return Ok(());
             };
             let info = progress.passes.last().cloned().expect("a pass was pushed");
-            (progress.encode(), info, ends)
+            let rays = progress.timing.rays;
+            (progress.encode(), (info, rays), ends)
         };
+        let (info, rays) = info;
         self.files.put_sums(job_id, &file)?;
         drop(file);
         {
@@ -532,12 +534,13 @@ impl Farm {
         }
         self.flush()?;
         tracing::info!(
-            "job {job_id}: pass {} done at {:.3}s: mean spp {:.2}, error {:.4}, {} blocks sampling",
+            "job {job_id}: pass {} done at {:.3}s: mean spp {:.2}, error {:.4}, {} blocks sampling, {:.0} rays traced by the passes",
             info.pass,
             info.wall_s,
             info.spp_mean,
             info.error,
-            info.active_blocks
+            info.active_blocks,
+            rays
         );
         self.events.send(FarmEvent::Job(job_id));
         if ends {
