@@ -180,7 +180,10 @@ impl<'a> Renderer<'a> {
         if rect.width == 0 {
             return true;
         }
+        // One row per rayon job, as in `render_tile`, so that a pass's last tile is shared row
+        // by row at the pass's end (no wall-time change was measurable at load 7-8).
         sums.par_chunks_mut(SUMS * rect.width as usize)
+            .with_max_len(1)
             .enumerate()
             .for_each(|(row, out)| {
                 if cancel.load(Ordering::Relaxed) {

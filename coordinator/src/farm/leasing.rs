@@ -40,6 +40,8 @@ impl Farm {
             progress.leased(now);
         }
         self.metrics.leases_granted.fetch_add(1, Ordering::Relaxed);
+        // For timelines of a job's passes (RUST_LOG=coordinator=debug).
+        tracing::debug!("job {job_id}: leased tile {tile} to worker {worker_id}");
         let granted = self.describe(&state, id, &state.leases[&id]);
         drop(state);
         self.events.tile(job_id, tile);

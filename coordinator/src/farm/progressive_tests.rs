@@ -338,6 +338,33 @@ fn the_pass_that_would_run_into_the_time_limit_is_sized_to_end_before_it() {
 }
 
 #[test]
+fn the_last_pass_takes_the_whole_time_left_rather_than_end_early() {
+    let scene = cornell();
+    let dir = tempfile::tempdir().unwrap();
+    let clock = Arc::new(ManualClock::new(0));
+    let farm = Farm::for_tests(dir.path(), FarmConfig::default(), clock.clone());
+    let free = farm
+        .submit(sized_job(&farm, 96, 64, 16, rules(0.0, 8, 64)))
+        .unwrap();
+    let first = run_timed(&farm, &clock, &scene, free.id)[0];
+    // 3.2 first passes: a full second pass (twice the image's rays, to about 3 first passes)
+    // would leave too little for a third worth its overhead. The second pass takes the whole
+    // time left instead of leaving it unused.
+    let mut r = rules(0.0, 8, 64);
+    let limit = 3.2 * first;
+    r.time_limit_s = Some(limit);
+    let limited = farm.submit(sized_job(&farm, 96, 64, 16, r)).unwrap();
+    let start = clock.now_ms();
+    let walls = run_timed(&farm, &clock, &scene, limited.id);
+    let used = (clock.now_ms() - start) as f64 / 1000.0;
+    assert_eq!(walls.len(), 2, "{walls:?}, limit {limit}");
+    assert!(
+        used > 0.95 * limit && used < limit,
+        "ended at {used} s of {limit}: {walls:?}"
+    );
+}
+
+#[test]
 fn a_coordinator_killed_between_passes_resumes_without_losing_a_finished_pass() {
     let scene = cornell();
     let reference = {
