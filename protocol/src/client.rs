@@ -226,8 +226,8 @@ impl Client {
         .await
     }
 
-    /// Posts a finished tile's pixels (see [`crate::pixels_to_bytes`]).
-    /// Sends a tile's pixels ([`pixels_body`], or any f32 little-endian bytes).
+    /// Posts a finished tile's pixels: [`pixels_body`], or any f32 little-endian bytes (see
+    /// [`crate::pixels_to_bytes`]).
     pub async fn complete(
         &self,
         lease_id: u64,
