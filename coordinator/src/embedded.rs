@@ -1,13 +1,21 @@
 //! An in-process farm: a coordinator on a loopback port and local workers sharing one scene
-//! cache. `coordinator render` and `coordinator report` drive it over HTTP exactly as a user
-//! drives a real farm, so what they measure includes the farm's own overhead.
+//! cache. `coordinator render` and `coordinator report` submit to it over HTTP as a user
+//! submits to a real farm, and the workers lease, heartbeat and fail over HTTP like remote
+//! ones, so what they measure includes the farm's own overhead; only the workers' rendered
+//! tiles (and pass sums) are handed to the farm in memory ([`InProcess`]), through the same
+//! code the routes run.
 
+use std::future::Future;
 use std::path::PathBuf;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
-use protocol::client::{Client, ClientError};
+use protocol::client::{Bytes, Client, ClientError};
+use protocol::Completion;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
+use worker::pass::Handover;
 use worker::{SceneCache, Shutdown, Worker, WorkerConfig, WorkerStats};
 
 use crate::clock::SystemClock;
@@ -49,9 +57,40 @@ pub fn local_tile_size(spec: &protocol::JobSpec, workers: usize) -> u32 {
     size.max(default)
 }
 
+/// The local workers' rendered tiles and pass sums, handed to the farm in memory by the same
+/// code the routes run (validation, storage, the commit wait), with the errors the routes'
+/// answers would give.
+struct InProcess {
+    farm: Arc<Farm>,
+    /// Completions handed over, accepted or not.
+    handed: AtomicU64,
+}
+
+impl Handover for InProcess {
+    fn complete(
+        &self,
+        lease_id: u64,
+        bytes: Bytes,
+        pass: bool,
+    ) -> Pin<Box<dyn Future<Output = Result<Completion, ClientError>> + Send + '_>> {
+        self.handed.fetch_add(1, Ordering::Relaxed);
+        Box::pin(async move {
+            let stored = if pass {
+                crate::api::store_sums(&self.farm, lease_id, bytes).await
+            } else {
+                crate::api::store_pixels(&self.farm, lease_id, bytes).await
+            };
+            stored.map_err(|crate::api::Failure(status, body)| {
+                ClientError::from_answer(status.as_u16(), body)
+            })
+        })
+    }
+}
+
 /// A running in-process farm. Call [`EmbeddedFarm::shutdown`] to stop it cleanly.
 pub struct EmbeddedFarm {
     farm: Arc<Farm>,
+    handover: Arc<InProcess>,
     client: Client,
     url: String,
     token: String,
@@ -187,6 +226,10 @@ impl EmbeddedFarm {
         ));
         let client = Client::new(&url, Some(token.clone())).map_err(|e| e.to_string())?;
 
+        let handover = Arc::new(InProcess {
+            farm: farm.clone(),
+            handed: AtomicU64::new(0),
+        });
         let (stop_workers, shutdown) = Shutdown::new();
         let mut worker_tasks = Vec::new();
         for i in 0..workers {
@@ -210,13 +253,15 @@ impl EmbeddedFarm {
                 };
                 let config = WorkerConfig::new(label, n);
                 let worker =
-                    Worker::with_pool(client.clone(), config, scenes.clone(), pool.clone());
+                    Worker::with_pool(client.clone(), config, scenes.clone(), pool.clone())
+                        .with_handover(handover.clone() as Arc<dyn Handover>);
                 let shutdown = shutdown.clone();
                 worker_tasks.push(tokio::spawn(async move { worker.run(shutdown).await }));
             }
         }
         Ok(Self {
             farm,
+            handover,
             client,
             url,
             token,
@@ -234,6 +279,12 @@ impl EmbeddedFarm {
     /// change notifications and finished images (`coordinator render`).
     pub fn farm(&self) -> &Arc<Farm> {
         &self.farm
+    }
+
+    /// How many rendered tiles (or pass sums) the local workers handed to the farm in memory
+    /// rather than over HTTP.
+    pub fn handed_over(&self) -> u64 {
+        self.handover.handed.load(Ordering::Relaxed)
     }
 
     /// A client authorised on this farm.
@@ -270,6 +321,95 @@ impl EmbeddedFarm {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::farm::NewJob;
+
+    #[tokio::test]
+    async fn the_in_process_handover_answers_as_the_pixels_route_does() {
+        let config = FarmConfig::default();
+        let farm = Farm::open_in_memory(config, Arc::new(SystemClock)).unwrap();
+        let mut spec = protocol::JobSpec::default();
+        (spec.render.width, spec.render.height, spec.tile_size) = (16, 16, 8);
+        farm.submit(NewJob {
+            name: "handover".into(),
+            scene_file: "s.scene".into(),
+            scene_hash: "0".repeat(64),
+            spec,
+            assets: vec![],
+        })
+        .unwrap();
+        let worker = farm.register_worker("w").unwrap().worker_id;
+        let handover = InProcess {
+            farm: farm.clone(),
+            handed: AtomicU64::new(0),
+        };
+        let pixels = |value: f32, n: usize| protocol::client::pixels_body(vec![value; n]);
+
+        let lease = farm.lease(worker).unwrap().unwrap();
+        let n = lease.rect.pixel_count() * 3;
+        match handover
+            .complete(lease.lease_id, pixels(0.5, 5), false)
+            .await
+        {
+            Err(ClientError::Api {
+                status: 400,
+                message,
+                ..
+            }) => {
+                assert!(message.contains("768 bytes"), "{message}")
+            }
+            other => panic!("a short tile was not refused with 400: {other:?}"),
+        }
+        match handover
+            .complete(lease.lease_id, pixels(f32::NAN, n), false)
+            .await
+        {
+            Err(ClientError::Api {
+                status: 400,
+                message,
+                ..
+            }) => {
+                assert!(message.contains("non-finite"), "{message}")
+            }
+            other => panic!("a NaN tile was not refused with 400: {other:?}"),
+        }
+        // The NaN tile ended its lease as a failure: a late copy is stale (409).
+        let late = handover
+            .complete(lease.lease_id, pixels(0.5, n), false)
+            .await;
+        assert!(matches!(late, Err(ClientError::Stale(_))), "{late:?}");
+
+        let lease = farm.lease(worker).unwrap().unwrap();
+        let done = handover
+            .complete(lease.lease_id, pixels(0.5, n), false)
+            .await
+            .unwrap();
+        assert_eq!((done.tiles_done, done.tiles_total), (1, 4));
+        assert_eq!(handover.handed.load(Ordering::Relaxed), 4);
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn local_workers_hand_every_tile_over_in_memory() {
+        let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/scenes/course/test.scene");
+        let mut spec = protocol::JobSpec::default();
+        (spec.render.width, spec.render.height, spec.tile_size) = (48, 32, 16);
+        spec.render.spp = 1;
+        let submission = crate::cli::submit::collect_submission(&scene, spec).unwrap();
+        let farm = EmbeddedFarm::start(None, 1, 2, None).await.unwrap();
+        let mut events = farm.farm().subscribe();
+        let job = farm.client().submit(&submission).await.unwrap();
+        let info = loop {
+            let info = farm.farm().job(job.id).unwrap();
+            if info.state.is_finished() {
+                break info;
+            }
+            let _ = events.recv().await;
+        };
+        assert_eq!(info.state, protocol::JobState::Done, "{:?}", info.error);
+        assert_eq!(info.tiles_total, 6);
+        assert_eq!(farm.handed_over(), 6, "every tile handed over, none posted");
+        farm.shutdown().await;
+    }
 
     #[test]
     fn the_scratch_estimate_covers_tiles_images_and_blobs() {

@@ -37,6 +37,26 @@ pub enum ClientError {
 }
 
 impl ClientError {
+    /// The error an answer with error status `status` and body `body` means: what a worker
+    /// gets from a route, or from the farm in its own process (the embedded farm's handover).
+    pub fn from_answer(status: u16, body: ApiError) -> Self {
+        let message = if body.error.is_empty() {
+            StatusCode::from_u16(status)
+                .map(|s| s.to_string())
+                .unwrap_or_else(|_| format!("HTTP {status}"))
+        } else {
+            body.error.clone()
+        };
+        if status == StatusCode::CONFLICT.as_u16() {
+            return ClientError::Stale(message);
+        }
+        ClientError::Api {
+            status,
+            message,
+            body,
+        }
+    }
+
     /// Worth retrying after a pause: the network or a server-side (5xx) problem.
     pub fn is_transient(&self) -> bool {
         match self {
@@ -157,19 +177,7 @@ impl Client {
         let text = resp.text().await.unwrap_or_default();
         let body: ApiError =
             serde_json::from_str(&text).unwrap_or_else(|_| ApiError::new(text.trim()));
-        let message = if body.error.is_empty() {
-            status.to_string()
-        } else {
-            body.error.clone()
-        };
-        if status == StatusCode::CONFLICT {
-            return Err(ClientError::Stale(message));
-        }
-        Err(ClientError::Api {
-            status: status.as_u16(),
-            message,
-            body,
-        })
+        Err(ClientError::from_answer(status.as_u16(), body))
     }
 
     async fn json<T: DeserializeOwned>(req: RequestBuilder) -> Result<T> {

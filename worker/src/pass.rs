@@ -3,6 +3,8 @@
 //! renders the tile whole and answers with pixels. Kept apart from the pull loop, which only
 //! asks this module what to render and where to send it.
 
+use std::future::Future;
+use std::pin::Pin;
 use std::sync::atomic::AtomicBool;
 
 use protocol::client::{pixels_body, Bytes, Client, ClientError};
@@ -66,12 +68,35 @@ pub fn render(
     }
 }
 
-/// Sends a rendered lease to the route that takes it.
+/// A way to hand rendered leases to the coordinator other than its HTTP routes. A worker
+/// in the coordinator's own process (the embedded farm) gives them to the farm in memory: a
+/// tile's pixels then cross no loopback socket and are not copied into a request body on
+/// the way (an 800×600 tile of f32 RGB took 13 ms from render end to acceptance over HTTP).
+/// Leases, heartbeats and everything else still go over HTTP.
+pub trait Handover: Send + Sync {
+    /// Delivers `lease_id`'s output as its route would: f32 pixels, or with `pass` a
+    /// progressive pass's f64 running sums, little-endian either way. Errors are the ones
+    /// the route's answer would give ([`ClientError::from_answer`]).
+    fn complete(
+        &self,
+        lease_id: u64,
+        bytes: Bytes,
+        pass: bool,
+    ) -> Pin<Box<dyn Future<Output = Result<Completion, ClientError>> + Send + '_>>;
+}
+
+/// Sends a rendered lease to the route that takes it, or to `handover` when there is one.
 pub async fn deliver(
     client: &Client,
+    handover: Option<&dyn Handover>,
     lease: &Lease,
     output: &Output,
 ) -> Result<Completion, ClientError> {
+    if let Some(handover) = handover {
+        return handover
+            .complete(lease.lease_id, output.bytes.clone(), output.pass)
+            .await;
+    }
     if output.pass {
         client
             .complete_sums(lease.lease_id, output.bytes.clone())

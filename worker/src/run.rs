@@ -84,6 +84,8 @@ pub struct Worker {
     config: WorkerConfig,
     scenes: Arc<SceneCache>,
     pool: Arc<rayon::ThreadPool>,
+    /// Where rendered leases go instead of the HTTP routes (see [`pass::Handover`]).
+    handover: Option<Arc<dyn pass::Handover>>,
 }
 
 /// Why a render was cancelled.
@@ -122,7 +124,15 @@ impl Worker {
             config,
             scenes,
             pool,
+            handover: None,
         }
+    }
+
+    /// Hands rendered leases to `handover` rather than posting them: for a worker in the
+    /// coordinator's own process.
+    pub fn with_handover(mut self, handover: Arc<dyn pass::Handover>) -> Self {
+        self.handover = Some(handover);
+        self
     }
 
     /// Pulls and renders tiles until `shutdown` fires. Returns an error only for problems no
@@ -301,7 +311,7 @@ impl Worker {
         // coordinator honours leases granted before it went down.
         let mut retry = Backoff::new(Duration::from_millis(100), self.config.max_backoff);
         loop {
-            match pass::deliver(&self.client, &lease, &output).await {
+            match pass::deliver(&self.client, self.handover.as_deref(), &lease, &output).await {
                 Ok(done) => {
                     stats.rendered += 1;
                     tracing::info!(

@@ -4,6 +4,7 @@
 
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
@@ -14,15 +15,17 @@ use axum::Json;
 use protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
 
 use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
-use crate::farm::FarmError;
+use crate::farm::{Farm, FarmError};
 
 /// Counts 409s for the metrics on the way out.
 fn counted<T>(app: &super::App, result: Result<T, FarmError>) -> ApiResult<T> {
+    stale_counted(&app.farm, result)
+}
+
+/// [`counted`], for a farm without the rest of the app (the embedded farm's handover).
+fn stale_counted<T>(farm: &Farm, result: Result<T, FarmError>) -> ApiResult<T> {
     if let Err(FarmError::Stale(_)) = &result {
-        app.farm
-            .metrics
-            .stale_requests
-            .fetch_add(1, Ordering::Relaxed);
+        farm.metrics.stale_requests.fetch_add(1, Ordering::Relaxed);
     }
     Ok(result?)
 }
@@ -126,7 +129,14 @@ pub async fn complete(
     body: Bytes,
 ) -> ApiResult<Json<Completion>> {
     let id = parse_id("lease", &id)?;
-    let farm = app.farm.clone();
+    store_pixels(&app.farm, id, body).await.map(Json)
+}
+
+/// Stores lease `id`'s tile pixels (f32 little-endian) and answers once the change is
+/// committed: the pixels route, and the embedded farm's workers handing tiles over in memory.
+pub(crate) async fn store_pixels(farm: &Arc<Farm>, id: u64, body: Bytes) -> ApiResult<Completion> {
+    let shared = farm;
+    let farm = farm.clone();
     let inline = body.len() <= INLINE_COMPLETION;
     let store = move || {
         Ok(match first_non_finite(&body) {
@@ -151,10 +161,10 @@ pub async fn complete(
     } else {
         blocking(store).await?
     };
-    let outcome = counted(&app, result)?;
-    app.farm.durable(app.farm.written()).await?;
+    let outcome = stale_counted(shared, result)?;
+    shared.durable(shared.written()).await?;
     match outcome {
-        Outcome::Stored(done) => Ok(Json(done)),
+        Outcome::Stored(done) => Ok(done),
         Outcome::NonFinite(error) => Err(Failure::bad_request(format!(
             "{error}; refused, and the tile is queued again"
         ))),
@@ -179,13 +189,19 @@ pub async fn complete_sums(
     body: Bytes,
 ) -> ApiResult<Json<Completion>> {
     let id = parse_id("lease", &id)?;
-    let farm = app.farm.clone();
-    let done = counted(
-        &app,
-        blocking(move || Ok(farm.complete_sums(id, &body))).await?,
+    store_sums(&app.farm, id, body).await.map(Json)
+}
+
+/// Stores a pass lease's new running sums (f64 little-endian) and answers once the change is
+/// committed: the sums route, and the embedded farm's in-memory handover.
+pub(crate) async fn store_sums(farm: &Arc<Farm>, id: u64, body: Bytes) -> ApiResult<Completion> {
+    let shared = farm.clone();
+    let done = stale_counted(
+        farm,
+        blocking(move || Ok(shared.complete_sums(id, &body))).await?,
     )?;
-    app.farm.durable(app.farm.written()).await?;
-    Ok(Json(done))
+    farm.durable(farm.written()).await?;
+    Ok(done)
 }
 
 pub async fn fail(

@@ -8,6 +8,8 @@ mod dashboard;
 mod events;
 mod jobs;
 mod leases;
+
+pub(crate) use leases::{store_pixels, store_sums};
 #[cfg(test)]
 mod spec_tests;
 mod workers;

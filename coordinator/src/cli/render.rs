@@ -1,6 +1,6 @@
 //! `coordinator render`: the one-command farm. An [`EmbeddedFarm`], the scene submitted over
-//! HTTP like any other job and rendered by workers that lease and complete its tiles over
-//! HTTP, a progress bar, the PNG written, everything torn down.
+//! HTTP like any other job and rendered by workers that lease its tiles over HTTP (and hand
+//! the pixels over in memory), a progress bar, the PNG written, everything torn down.
 //!
 //! The farm runs in this process, so the command learns of the job's progress from the farm's
 //! change notifications and takes the finished image from it directly: polling the job and
