@@ -342,9 +342,21 @@ impl RowShader<'_> {
             self.shadow_rays += counts.shadow as u64;
         };
         let Some(slots) = packet_slots else {
-            for sample in samples {
-                let ray = eye.sample_in(x, self.y, sample, stratum(&self.order, sample));
-                shade(sample, ray, frustum.map_or(Eye::Walk, Eye::Among));
+            // The eye rays are made a batch at a time before any is shaded: each one's square
+            // root and divisions then overlap the next one's, where between two shaded
+            // samples they would wait on each other's latency.
+            let found = frustum.map_or(Eye::Walk, Eye::Among);
+            let mut start = samples.start;
+            while start < samples.end {
+                let end = samples.end.min(start + PACKET as u32);
+                self.eyes.clear();
+                self.eyes.extend(
+                    (start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))),
+                );
+                for (k, ray) in self.eyes.drain(..).enumerate() {
+                    shade(start + k as u32, ray, found);
+                }
+                start = end;
             }
             return;
         };
