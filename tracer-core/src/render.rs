@@ -333,10 +333,15 @@ impl RowShader<'_> {
             .filter(|slots| samples.len() >= MIN_PACKET && self.world.any_model_among(slots));
         // Shades one eye sample, its first hit found as `first` says, into the pixel's sums
         // (captures only the tracer and the ray counters, so the row's buffers stay free).
-        let mut shade = |sample: u32, mut ray: EyeSample, first: Eye| {
-            let (color, counts) =
-                self.tracer
-                    .sample(&ray.ray, ray.near, ray.far, &mut ray.rng, ray.gloss, first);
+        let mut shade = |sample: u32, ray: &mut EyeSample, first: Eye| {
+            let (color, counts) = self.tracer.sample(
+                &ray.ray,
+                ray.near,
+                ray.far,
+                &mut ray.rng,
+                ray.gloss.take(),
+                first,
+            );
             add_sample::<ESTIMATE>(acc, sample, color, counts);
             self.radiance_rays += counts.radiance as u64;
             self.shadow_rays += counts.shadow as u64;
@@ -353,7 +358,7 @@ impl RowShader<'_> {
                 self.eyes.extend(
                     (start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))),
                 );
-                for (k, ray) in self.eyes.drain(..).enumerate() {
+                for (k, ray) in self.eyes.iter_mut().enumerate() {
                     shade(start + k as u32, ray, found);
                 }
                 start = end;
@@ -381,7 +386,7 @@ impl RowShader<'_> {
                     *h = self.world.intersect_among(&e.ray, e.near, e.far, slots);
                 }
             }
-            for (k, ray) in self.eyes.drain(..).enumerate() {
+            for (k, ray) in self.eyes.iter_mut().enumerate() {
                 shade(start + k as u32, ray, Eye::Found(self.hits[k]));
             }
             start = end;
