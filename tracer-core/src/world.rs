@@ -268,6 +268,12 @@ enum Object {
 /// invariant under affine maps); shading still reads the mesh through the model.
 pub const FLAT_MODEL_LIMIT: usize = 32;
 
+/// Small models are flattened only when a scene has at least this many: a lone one costs a
+/// ray one instance box, which turns most rays away before any set-up, while its triangles'
+/// overlapping boxes at the top level cost every ray near it several tests (cube.scene, one
+/// 12-triangle cube: 8% slower flattened; stacks.scene, five: 20% faster).
+pub const FLAT_MODELS_MIN: usize = 2;
+
 /// A triangle of a flattened model: its world-space corners, the model, and its slot in
 /// the mesh.
 #[derive(Clone, Copy, Debug)]
@@ -397,11 +403,23 @@ impl World {
             bounds.push(Aabb::from_points(&t.positions));
         }
         let mut model_triangles = Vec::new();
+        let live_triangles = |m: &Model| {
+            let mesh = &meshes[m.mesh as usize];
+            mesh.indices
+                .iter()
+                .filter(|&&t| t != PADDING_TRIANGLE)
+                .count()
+        };
+        let small_models = models
+            .iter()
+            .filter(|m| live_triangles(m) <= FLAT_MODEL_LIMIT)
+            .count();
+        let flatten = small_models >= FLAT_MODELS_MIN;
         for (i, m) in models.iter().enumerate() {
             let mesh = &meshes[m.mesh as usize];
             let live =
                 || (0..mesh.indices.len()).filter(|&slot| mesh.indices[slot] != PADDING_TRIANGLE);
-            if live().count() <= FLAT_MODEL_LIMIT {
+            if flatten && live().count() <= FLAT_MODEL_LIMIT {
                 for slot in live() {
                     let corners =
                         mesh.corners[slot].map(|c| m.transform.to_world.transform_point3(c));
@@ -1514,6 +1532,34 @@ mod tests {
     }
 
     #[test]
+    fn a_lone_small_model_stays_an_instance_and_several_are_flattened() {
+        let small = |x: f64| Model {
+            transform: Transform::new(DVec3::new(x, 0.0, -3.0), glam::DQuat::IDENTITY, DVec3::ONE),
+            mesh: 0,
+            material: 0,
+        };
+        let world = |models: Vec<Model>| {
+            World::with_movers(
+                vec![],
+                vec![],
+                vec![grid_mesh(2, |x, _| 0.2 * x)],
+                models,
+                vec![],
+                (0.0, 0.0),
+            )
+        };
+        let lone = world(vec![small(0.0)]);
+        assert!(lone.model_triangles.is_empty());
+        assert!(matches!(lone.objects[..], [Object::Model(0)]));
+        let pair = world(vec![small(0.0), small(2.0)]);
+        assert_eq!(pair.model_triangles.len(), 16);
+        assert!(pair
+            .objects
+            .iter()
+            .all(|o| matches!(o, Object::ModelTriangle(_))));
+    }
+
+    #[test]
     fn a_shadow_packet_is_blocked_exactly_as_each_ray_alone() {
         let mut next = crate::test_rng::uniform(99);
         let mut worlds = Vec::new();
@@ -1522,21 +1568,26 @@ mod tests {
             (1e-3, DVec3::new(0.5, -0.2, 0.1)),
             (1e4, DVec3::new(3e4, 1e3, -2e4)),
         ] {
-            // The packet scene's models and spheres, with scene triangles and a small model
-            // flattened into the top level added.
+            // The packet scene's models and spheres, with scene triangles and two small
+            // models flattened into the top level added.
             let w = packet_world(scale, offset);
             let mut models = w.models.clone();
             let mut meshes = w.meshes.clone();
             meshes.push(grid_mesh(2, |x, _| 0.2 * x));
-            models.push(Model {
-                transform: Transform::new(
-                    offset + DVec3::new(0.3, -0.2, -2.8) * scale,
-                    glam::DQuat::from_rotation_y(0.4),
-                    DVec3::splat(0.4 * scale),
-                ),
-                mesh: 2,
-                material: 0,
-            });
+            for (at, turn) in [
+                (DVec3::new(0.3, -0.2, -2.8), 0.4),
+                (DVec3::new(-0.6, 0.1, -3.1), -0.7),
+            ] {
+                models.push(Model {
+                    transform: Transform::new(
+                        offset + at * scale,
+                        glam::DQuat::from_rotation_y(turn),
+                        DVec3::splat(0.4 * scale),
+                    ),
+                    mesh: 2,
+                    material: 0,
+                });
+            }
             let triangles = (0..6)
                 .map(|i| {
                     let c = offset + DVec3::new(i as f64 * 0.3 - 0.8, 0.4, -2.9) * scale;
@@ -1561,6 +1612,11 @@ mod tests {
                 (0.0, 0.0),
             );
             assert!(world.objects.len() > 10);
+            assert_eq!(
+                world.model_triangles.len(),
+                16,
+                "both small models flattened"
+            );
             worlds.push((scale, offset, world));
         }
         // And a world of one model, which skips the top level.
