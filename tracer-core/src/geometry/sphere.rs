@@ -17,6 +17,13 @@ pub fn intersect_unit_sphere_scaled(
     let a = dir.length_squared();
     let b = origin.dot(dir);
     let c = origin.length_squared() - radius * radius;
+    if c > 0.0 && b >= 0.0 && t_min >= 0.0 {
+        // From outside and heading away from the centre: both roots are at t ≤ 0 (their
+        // product c/a is positive, their sum −2b/a is not), and the arithmetic below keeps
+        // their signs (q ≤ 0, so c/q and q/a are ≤ 0), so it would find no hit either. Rays
+        // leaving a sphere's lit side (shadow rays, reflections) meet this first.
+        return None;
+    }
     let closest = origin - (b / a) * dir;
     let discriminant = a * (radius * radius - closest.length_squared());
     if discriminant < 0.0 {
@@ -44,6 +51,30 @@ pub fn intersect_unit_sphere_scaled(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rays_from_outside_hit_only_when_heading_towards_the_centre() {
+        let mut next = crate::test_rng::uniform(41);
+        let mut point = || DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+        let (mut towards, mut away) = (0, 0);
+        for _ in 0..20_000 {
+            let radius = 0.5;
+            let origin = point().normalize() * (radius * 1.000_001 + 3.0 * point().length());
+            let dir = point();
+            let b = origin.dot(dir);
+            let closest = origin - b / dir.length_squared() * dir;
+            let hit = intersect_unit_sphere_scaled(origin, dir, radius, 0.0, f64::INFINITY);
+            if b >= 0.0 {
+                assert_eq!(hit, None, "{origin} {dir}: a hit behind the ray");
+                away += 1;
+            } else if closest.length() < 0.99 * radius {
+                let t = hit.unwrap_or_else(|| panic!("{origin} {dir}: the sphere was missed"));
+                assert!(((origin + t * dir).length() - radius).abs() < 1e-9);
+                towards += 1;
+            }
+        }
+        assert!(towards > 200 && away > 5000, "{towards} {away}");
+    }
 
     #[test]
     fn hits_front_and_from_inside() {
