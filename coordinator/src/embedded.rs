@@ -321,22 +321,24 @@ impl EmbeddedFarm {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::farm::NewJob;
+
+    /// The message of an answer that must be a 400.
+    fn refused(answer: Result<Completion, ClientError>) -> String {
+        match answer {
+            Err(ClientError::Api {
+                status: 400,
+                message,
+                ..
+            }) => message,
+            other => panic!("not refused with 400: {other:?}"),
+        }
+    }
 
     #[tokio::test]
     async fn the_in_process_handover_answers_as_the_pixels_route_does() {
-        let config = FarmConfig::default();
-        let farm = Farm::open_in_memory(config, Arc::new(SystemClock)).unwrap();
-        let mut spec = protocol::JobSpec::default();
-        (spec.render.width, spec.render.height, spec.tile_size) = (16, 16, 8);
-        farm.submit(NewJob {
-            name: "handover".into(),
-            scene_file: "s.scene".into(),
-            scene_hash: "0".repeat(64),
-            spec,
-            assets: vec![],
-        })
-        .unwrap();
+        let farm = Farm::open_in_memory(FarmConfig::default(), Arc::new(SystemClock)).unwrap();
+        farm.submit(crate::farm::tests::new_job("handover"))
+            .unwrap();
         let worker = farm.register_worker("w").unwrap().worker_id;
         let handover = InProcess {
             farm: farm.clone(),
@@ -346,32 +348,18 @@ mod tests {
 
         let lease = farm.lease(worker).unwrap().unwrap();
         let n = lease.rect.pixel_count() * 3;
-        match handover
-            .complete(lease.lease_id, pixels(0.5, 5), false)
-            .await
-        {
-            Err(ClientError::Api {
-                status: 400,
-                message,
-                ..
-            }) => {
-                assert!(message.contains("768 bytes"), "{message}")
-            }
-            other => panic!("a short tile was not refused with 400: {other:?}"),
-        }
-        match handover
-            .complete(lease.lease_id, pixels(f32::NAN, n), false)
-            .await
-        {
-            Err(ClientError::Api {
-                status: 400,
-                message,
-                ..
-            }) => {
-                assert!(message.contains("non-finite"), "{message}")
-            }
-            other => panic!("a NaN tile was not refused with 400: {other:?}"),
-        }
+        let short = refused(
+            handover
+                .complete(lease.lease_id, pixels(0.5, 5), false)
+                .await,
+        );
+        assert!(short.contains("768 bytes"), "{short}");
+        let nan = refused(
+            handover
+                .complete(lease.lease_id, pixels(f32::NAN, n), false)
+                .await,
+        );
+        assert!(nan.contains("non-finite"), "{nan}");
         // The NaN tile ended its lease as a failure: a late copy is stale (409).
         let late = handover
             .complete(lease.lease_id, pixels(0.5, n), false)
@@ -394,7 +382,7 @@ mod tests {
         let mut spec = protocol::JobSpec::default();
         (spec.render.width, spec.render.height, spec.tile_size) = (48, 32, 16);
         spec.render.spp = 1;
-        let submission = crate::cli::submit::collect_submission(&scene, spec).unwrap();
+        let submission = crate::cli::collect_submission(&scene, spec).unwrap();
         let farm = EmbeddedFarm::start(None, 1, 2, None).await.unwrap();
         let mut events = farm.farm().subscribe();
         let job = farm.client().submit(&submission).await.unwrap();

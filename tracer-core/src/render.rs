@@ -346,48 +346,38 @@ impl RowShader<'_> {
             self.radiance_rays += counts.radiance as u64;
             self.shadow_rays += counts.shadow as u64;
         };
-        let Some(slots) = packet_slots else {
-            // The eye rays are made a batch at a time before any is shaded: each one's square
-            // root and divisions then overlap the next one's, where between two shaded
-            // samples they would wait on each other's latency.
-            let found = frustum.map_or(Eye::Walk, Eye::Among);
-            let mut start = samples.start;
-            while start < samples.end {
-                let end = samples.end.min(start + PACKET as u32);
-                self.eyes.clear();
-                self.eyes.extend(
-                    (start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))),
-                );
-                for (k, ray) in self.eyes.iter_mut().enumerate() {
-                    shade(start + k as u32, ray, found);
-                }
-                start = end;
-            }
-            return;
-        };
-        // The pixel's eye rays are coherent: their hits are found a packet at a time (the
-        // same hits as one at a time), then each sample is shaded in order.
+        // The eye rays are made a batch at a time before any is shaded: each one's square root
+        // and divisions then overlap the next one's, where between two shaded samples they
+        // would wait on each other's latency. Where the pixel's rays are coherent enough for
+        // a packet, the batch's hits are found together too (the same hits as one at a time).
+        let one_by_one = frustum.map_or(Eye::Walk, Eye::Among);
         let mut start = samples.start;
         while start < samples.end {
             let end = samples.end.min(start + PACKET as u32);
             self.eyes.clear();
             self.eyes
                 .extend((start..end).map(|s| eye.sample_in(x, self.y, s, stratum(&self.order, s))));
-            self.rays.clear();
-            self.rays.extend(self.eyes.iter().map(|e| e.ray));
-            self.hits.resize(self.eyes.len(), None);
-            let hits = &mut self.hits[..];
-            let (near, far) = (self.eyes[0].near, self.eyes[0].far);
-            if self.eyes.iter().all(|e| e.near == near && e.far == far) {
-                self.world
-                    .intersect_packet(&self.rays, near, far, Some(slots), hits);
-            } else {
-                for (h, e) in hits.iter_mut().zip(&self.eyes) {
-                    *h = self.world.intersect_among(&e.ray, e.near, e.far, slots);
+            if let Some(slots) = packet_slots {
+                self.rays.clear();
+                self.rays.extend(self.eyes.iter().map(|e| e.ray));
+                self.hits.resize(self.eyes.len(), None);
+                let hits = &mut self.hits[..];
+                let (near, far) = (self.eyes[0].near, self.eyes[0].far);
+                if self.eyes.iter().all(|e| e.near == near && e.far == far) {
+                    self.world
+                        .intersect_packet(&self.rays, near, far, Some(slots), hits);
+                } else {
+                    for (h, e) in hits.iter_mut().zip(&self.eyes) {
+                        *h = self.world.intersect_among(&e.ray, e.near, e.far, slots);
+                    }
                 }
             }
             for (k, ray) in self.eyes.iter_mut().enumerate() {
-                shade(start + k as u32, ray, Eye::Found(self.hits[k]));
+                let first = match packet_slots {
+                    Some(_) => Eye::Found(self.hits[k]),
+                    None => one_by_one,
+                };
+                shade(start + k as u32, ray, first);
             }
             start = end;
         }

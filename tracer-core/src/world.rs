@@ -412,24 +412,22 @@ impl World {
             bounds.push(Aabb::from_points(&t.positions));
         }
         let mut model_triangles = Vec::new();
-        let live_triangles = |m: &Model| {
-            let mesh = &meshes[m.mesh as usize];
-            mesh.indices
-                .iter()
-                .filter(|&&t| t != PADDING_TRIANGLE)
-                .count()
-        };
-        let small_models = models
-            .iter()
-            .filter(|m| live_triangles(m) <= FLAT_MODEL_LIMIT)
-            .count();
-        let flatten = small_models >= FLAT_MODELS_MIN;
+        // Which models are small enough to flatten; none are unless there are several.
+        let mut small: Vec<bool> = (models.iter())
+            .map(|m| {
+                let indices = &meshes[m.mesh as usize].indices;
+                indices.iter().filter(|&&t| t != PADDING_TRIANGLE).count() <= FLAT_MODEL_LIMIT
+            })
+            .collect();
+        if small.iter().filter(|&&s| s).count() < FLAT_MODELS_MIN {
+            small.fill(false);
+        }
         for (i, m) in models.iter().enumerate() {
             let mesh = &meshes[m.mesh as usize];
-            let live =
-                || (0..mesh.indices.len()).filter(|&slot| mesh.indices[slot] != PADDING_TRIANGLE);
-            if flatten && live().count() <= FLAT_MODEL_LIMIT {
-                for slot in live() {
+            if small[i] {
+                let live =
+                    (0..mesh.indices.len()).filter(|&slot| mesh.indices[slot] != PADDING_TRIANGLE);
+                for slot in live {
                     let corners =
                         mesh.corners[slot].map(|c| m.transform.to_world.transform_point3(c));
                     objects.push(Object::ModelTriangle(model_triangles.len() as u32));

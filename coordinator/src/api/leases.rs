@@ -135,8 +135,7 @@ pub async fn complete(
 /// Stores lease `id`'s tile pixels (f32 little-endian) and answers once the change is
 /// committed: the pixels route, and the embedded farm's workers handing tiles over in memory.
 pub(crate) async fn store_pixels(farm: &Arc<Farm>, id: u64, body: Bytes) -> ApiResult<Completion> {
-    let shared = farm;
-    let farm = farm.clone();
+    let store_farm = farm.clone();
     let inline = body.len() <= INLINE_COMPLETION;
     let store = move || {
         Ok(match first_non_finite(&body) {
@@ -151,9 +150,11 @@ pub(crate) async fn store_pixels(farm: &Arc<Farm>, id: u64, body: Bytes) -> ApiR
                     error: error.clone(),
                     scene: false,
                 };
-                farm.fail(id, &report).map(|_| Outcome::NonFinite(error))
+                store_farm
+                    .fail(id, &report)
+                    .map(|_| Outcome::NonFinite(error))
             }
-            None => farm.complete(id, &body).map(Outcome::Stored),
+            None => store_farm.complete(id, &body).map(Outcome::Stored),
         })
     };
     let result = if inline {
@@ -161,8 +162,8 @@ pub(crate) async fn store_pixels(farm: &Arc<Farm>, id: u64, body: Bytes) -> ApiR
     } else {
         blocking(store).await?
     };
-    let outcome = stale_counted(shared, result)?;
-    shared.durable(shared.written()).await?;
+    let outcome = stale_counted(farm, result)?;
+    farm.durable(farm.written()).await?;
     match outcome {
         Outcome::Stored(done) => Ok(done),
         Outcome::NonFinite(error) => Err(Failure::bad_request(format!(
@@ -195,10 +196,10 @@ pub async fn complete_sums(
 /// Stores a pass lease's new running sums (f64 little-endian) and answers once the change is
 /// committed: the sums route, and the embedded farm's in-memory handover.
 pub(crate) async fn store_sums(farm: &Arc<Farm>, id: u64, body: Bytes) -> ApiResult<Completion> {
-    let shared = farm.clone();
+    let store_farm = farm.clone();
     let done = stale_counted(
         farm,
-        blocking(move || Ok(shared.complete_sums(id, &body))).await?,
+        blocking(move || Ok(store_farm.complete_sums(id, &body))).await?,
     )?;
     farm.durable(farm.written()).await?;
     Ok(done)

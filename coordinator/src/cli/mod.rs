@@ -7,7 +7,7 @@ mod paired;
 mod render;
 mod report;
 mod serve;
-pub(crate) mod submit;
+mod submit;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;

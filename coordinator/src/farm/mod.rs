@@ -462,4 +462,4 @@ impl Farm {
 #[cfg(test)]
 mod progressive_tests;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

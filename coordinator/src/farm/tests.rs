@@ -39,7 +39,7 @@ fn fixture(config: FarmConfig) -> Fixture {
 }
 
 /// A 4-tile job (16x16 in 8x8 tiles).
-fn new_job(name: &str) -> NewJob {
+pub(crate) fn new_job(name: &str) -> NewJob {
     let mut spec = JobSpec::default();
     spec.render.width = 16;
     spec.render.height = 16;
