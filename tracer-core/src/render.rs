@@ -107,6 +107,18 @@ impl<'a> Renderer<'a> {
     /// Renders `rect` (rows in parallel on the current rayon pool). Returns None if `cancel`
     /// was set before it finished.
     pub fn render_tile(&self, rect: TileRect, cancel: &AtomicBool) -> Option<Image> {
+        self.render_tile_in(rect, cancel, Vec::new())
+    }
+
+    /// [`Renderer::render_tile`] into `buffer`'s memory, whatever it holds. A worker passes
+    /// the buffer of a tile it has sent: fresh memory is mapped page by page as the rows
+    /// are written, 192 page faults for a 256×256 tile, on the render threads.
+    pub fn render_tile_in(
+        &self,
+        rect: TileRect,
+        cancel: &AtomicBool,
+        mut buffer: Vec<f32>,
+    ) -> Option<Image> {
         assert!(
             rect.x + rect.width <= self.settings.width
                 && rect.y + rect.height <= self.settings.height,
@@ -114,7 +126,13 @@ impl<'a> Renderer<'a> {
             self.settings.width,
             self.settings.height
         );
-        let mut tile = Image::new(rect.width, rect.height);
+        buffer.clear();
+        buffer.resize(3 * rect.pixel_count(), 0.0);
+        let mut tile = Image {
+            width: rect.width,
+            height: rect.height,
+            pixels: buffer,
+        };
         if rect.width == 0 {
             return Some(tile);
         }

@@ -7,7 +7,7 @@ use std::future::Future;
 use std::pin::Pin;
 use std::sync::atomic::AtomicBool;
 
-use protocol::client::{pixels_body, Bytes, Client, ClientError};
+use protocol::client::{Bytes, Client, ClientError, TileBuffers};
 use protocol::{Completion, Lease};
 use tracer_core::adaptive::{block_of, SumImage};
 use tracer_core::{Renderer, SampleOrder, Scene};
@@ -40,12 +40,14 @@ pub async fn start(client: &Client, lease: &Lease) -> Result<Start, ClientError>
         .map_err(|e| ClientError::Protocol(e.to_string()))
 }
 
-/// Renders `lease` (on the current rayon pool); None if `cancel` was set first.
+/// Renders `lease` (on the current rayon pool); None if `cancel` was set first. A tile is
+/// rendered into a buffer from `buffers`, which its body gives back once sent.
 pub fn render(
     scene: &Scene,
     lease: &Lease,
     start: Start,
     cancel: &AtomicBool,
+    buffers: &TileBuffers,
 ) -> Result<Option<Output>, String> {
     let renderer = Renderer::new(scene, &lease.settings).map_err(|e| e.to_string())?;
     match (start, &lease.pass) {
@@ -60,9 +62,9 @@ pub fn render(
             }))
         }
         _ => Ok(renderer
-            .render_tile(lease.rect, cancel)
+            .render_tile_in(lease.rect, cancel, buffers.take())
             .map(|image| Output {
-                bytes: pixels_body(image.pixels),
+                bytes: buffers.body(image.pixels),
                 pass: false,
             })),
     }

@@ -9,7 +9,7 @@ use tokio::sync::watch;
 
 use crate::pass;
 use crate::scenes::{LoadError, SceneCache};
-use protocol::client::{Client, ClientError};
+use protocol::client::{Client, ClientError, TileBuffers};
 use protocol::{FailureReport, Lease, LeaseRequest};
 
 #[derive(Clone, Debug)]
@@ -86,6 +86,8 @@ pub struct Worker {
     pool: Arc<rayon::ThreadPool>,
     /// Where rendered leases go instead of the HTTP routes (see [`pass::Handover`]).
     handover: Option<Arc<dyn pass::Handover>>,
+    /// Buffers of tiles already sent, rendered into again.
+    buffers: TileBuffers,
 }
 
 /// Why a render was cancelled.
@@ -125,6 +127,7 @@ impl Worker {
             scenes,
             pool,
             handover: None,
+            buffers: TileBuffers::default(),
         }
     }
 
@@ -254,9 +257,9 @@ impl Worker {
         let start = Instant::now();
         let cancel = Arc::new(AtomicBool::new(false));
         let render = {
-            let (pool, cancel, lease) = (self.pool.clone(), cancel.clone(), lease.clone());
-            tokio::task::spawn_blocking(move || {
-                pool.install(|| pass::render(&scene, &lease, begin, &cancel))
+            let (cancel, lease, buffers) = (cancel.clone(), lease.clone(), self.buffers.clone());
+            on_pool(&self.pool, move || {
+                pass::render(&scene, &lease, begin, &cancel, &buffers)
             })
         };
         tokio::pin!(render);
@@ -301,9 +304,9 @@ impl Worker {
                 self.report_failure(&lease, &tag, error, false, stats).await;
                 return;
             }
-            Err(join_error) => {
-                let error = panic_message(join_error);
-                self.report_failure(&lease, &tag, error, false, stats).await;
+            Err(panicked) => {
+                self.report_failure(&lease, &tag, panicked, false, stats)
+                    .await;
                 return;
             }
         };
@@ -390,18 +393,33 @@ impl Worker {
     }
 }
 
-fn panic_message(e: tokio::task::JoinError) -> String {
-    match e.try_into_panic() {
-        Ok(payload) => {
-            let text = payload
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| payload.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "unknown panic".into());
-            format!("rendering panicked: {text}")
+/// Runs `job` on `pool` and answers with its result, or with a panic's message. The job is
+/// queued on the pool itself rather than run by a blocking thread parked in `install`: no
+/// thread is started or woken per tile besides the pool's own.
+fn on_pool<T: Send + 'static>(
+    pool: &rayon::ThreadPool,
+    job: impl FnOnce() -> T + Send + 'static,
+) -> impl std::future::Future<Output = Result<T, String>> {
+    let (answer, answered) = tokio::sync::oneshot::channel();
+    pool.spawn(move || {
+        let _ = answer.send(std::panic::catch_unwind(std::panic::AssertUnwindSafe(job)));
+    });
+    async move {
+        match answered.await {
+            Ok(Ok(value)) => Ok(value),
+            Ok(Err(payload)) => Err(panic_message(payload.as_ref())),
+            Err(_) => Err("rendering was aborted: the render pool dropped the tile".into()),
         }
-        Err(e) => format!("rendering was aborted: {e}"),
     }
+}
+
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    let text = payload
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into());
+    format!("rendering panicked: {text}")
 }
 
 /// Exponential back-off with jitter, so a farm of workers does not retry in lock step.

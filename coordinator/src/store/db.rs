@@ -201,10 +201,14 @@ impl Db {
                 MIGRATIONS.len()
             )));
         }
-        for (i, sql) in MIGRATIONS.iter().enumerate().skip(version) {
+        // Every pending step in one transaction: the upgrade happens whole or not at all, and
+        // a new database (the embedded farm's, at every start) commits its schema once.
+        if version < MIGRATIONS.len() {
             let tx = conn.transaction()?;
-            tx.execute_batch(sql)?;
-            tx.pragma_update(None, "user_version", (i + 1) as i64)?;
+            for sql in &MIGRATIONS[version..] {
+                tx.execute_batch(sql)?;
+            }
+            tx.pragma_update(None, "user_version", MIGRATIONS.len() as i64)?;
             tx.commit()?;
         }
         Ok(Db {
