@@ -242,6 +242,9 @@ impl EmbeddedFarm {
                 .build()
                 .map_err(|e| e.to_string())?;
             let pool = Arc::new(pool);
+            if i == 0 {
+                farm.build_scenes_on(pool.clone());
+            }
             // Each worker's pool is fed by SLOTS pull loops (each its own identity with the
             // coordinator, so each holds its own lease): while one loop sends its pixels and
             // asks for the next tile, or its tile's last rows occupy a thread or two, the

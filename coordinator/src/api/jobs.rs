@@ -278,7 +278,8 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
         drop(parts);
         // Load the scene as a worker would, within the coordinator's budgets, so a broken or
         // oversized mesh or texture is refused now rather than on every worker.
-        let scene = Scene::build_with_limits(&desc, &scene_file, &assets, &load_limits)
+        let scene = farm
+            .building_scenes(|| Scene::build_with_limits(&desc, &scene_file, &assets, &load_limits))
             .map_err(|e| scene_error(&e))?;
         check_frames(&spec, scene.frame_count()).map_err(Failure::bad_request)?;
         // Not needed to store the job: give their memory back before the blobs are written,
@@ -336,7 +337,7 @@ fn load_stored_scene(farm: &Farm, bundle: &Bundle) -> ApiResult<Scene> {
     let limits = farm.config().limits.load_limits();
     let desc = SceneDescription::parse_with_limits(&text, &bundle.scene_file, &limits)
         .map_err(|e| scene_error(&e))?;
-    Scene::build_with_limits(&desc, &bundle.scene_file, &assets, &limits)
+    farm.building_scenes(|| Scene::build_with_limits(&desc, &bundle.scene_file, &assets, &limits))
         .map_err(|e| scene_error(&e))
 }
 
