@@ -102,6 +102,8 @@ pub struct EmbeddedFarm {
     server_task: JoinHandle<std::io::Result<()>>,
     // Held so a temporary data dir lives as long as the farm.
     _temp_dir: Option<tempfile::TempDir>,
+    /// Neither a data dir nor a temporary folder: see [`EmbeddedFarm::in_memory`].
+    in_memory: bool,
 }
 
 /// Where a farm without `--data-dir` keeps its files.
@@ -192,6 +194,7 @@ impl EmbeddedFarm {
         // A farm kept in a temporary folder is deleted at exit, so its database stays in
         // memory: creating and committing a durable one cost fsyncs worth 1% of a short render.
         let clock = Arc::new(SystemClock);
+        let in_memory = matches!(scratch, Some(Scratch::Memory));
         let (farm, temp_dir) = match (&data_dir, scratch) {
             (Some(dir), _) => (Farm::open(dir, config, clock), None),
             (None, Some(Scratch::Memory)) => (Farm::open_in_memory(config, clock), None),
@@ -275,6 +278,7 @@ impl EmbeddedFarm {
             stop_server,
             server_task,
             _temp_dir: temp_dir,
+            in_memory,
         })
     }
 
@@ -298,6 +302,12 @@ impl EmbeddedFarm {
     /// The coordinator's base URL (loopback).
     pub fn url(&self) -> &str {
         &self.url
+    }
+
+    /// Whether the farm keeps everything in this process's memory: no data dir, no
+    /// temporary folder to remove, so a clean stop saves nothing.
+    pub fn in_memory(&self) -> bool {
+        self.in_memory
     }
 
     /// The bearer token the farm demands (random per start).

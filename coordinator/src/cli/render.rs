@@ -60,7 +60,7 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
     let submission = collect_submission(&args.scene, spec)?;
     let quiet = args.output.quiet;
     let runtime = super::runtime()?;
-    runtime.block_on(async move {
+    let (result, in_memory) = runtime.block_on(async move {
         let submitted = submission.scene.len() as u64
             + submission
                 .assets
@@ -68,8 +68,12 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
                 .map(|(_, b)| b.len() as u64)
                 .sum::<u64>();
         let scratch = scratch_bytes(&submission.spec, submitted);
-        let farm =
-            EmbeddedFarm::start(args.data_dir.clone(), workers, threads, Some(scratch)).await?;
+        let farm = match EmbeddedFarm::start(args.data_dir.clone(), workers, threads, Some(scratch))
+            .await
+        {
+            Ok(farm) => farm,
+            Err(e) => return (Err(Failure::from(e)), false),
+        };
         // The fragment hands the page the token without sending it anywhere.
         eprintln!(
             "dashboard (while it renders): {}/#token={}",
@@ -77,9 +81,21 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
             farm.token()
         );
         let result = submit_and_wait(&farm, &submission, &output, quiet, start).await;
-        farm.shutdown().await;
-        result
-    })
+        let in_memory = farm.in_memory();
+        if in_memory {
+            // Nothing of this farm outlives the process, which ends as soon as this returns:
+            // stopping its workers and server cleanly (0.5 to 0.9 ms after every image) and
+            // then the runtime would only delay the exit. Their threads end with the process.
+            std::mem::forget(farm);
+        } else {
+            farm.shutdown().await;
+        }
+        (result, in_memory)
+    });
+    if in_memory {
+        std::mem::forget(runtime);
+    }
+    result
 }
 
 /// Submits the scene to the in-process farm, waits for it with a progress bar and writes the
