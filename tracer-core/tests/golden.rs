@@ -101,6 +101,9 @@ fn a_tile_equals_the_same_region_of_a_whole_render() {
     let renderer = Renderer::new(&scene, &s).unwrap();
     let never = AtomicBool::new(false);
     let mut assembled = Image::new(96, 72);
+    // A worker renders each tile into the last one's buffer: of another size, holding
+    // another tile's pixels (at first, NaN).
+    let mut reused = vec![f32::NAN; 7];
     for rect in TileRect::grid(96, 72, 20) {
         let tile = renderer.render_tile(rect, &never).unwrap();
         assert_eq!(
@@ -108,6 +111,9 @@ fn a_tile_equals_the_same_region_of_a_whole_render() {
             whole.crop(rect).pixels,
             "tile {rect:?} differs"
         );
+        let again = renderer.render_tile_in(rect, &never, reused).unwrap();
+        assert_eq!(again.pixels, tile.pixels, "tile {rect:?} in a used buffer");
+        reused = again.pixels;
         assembled.insert(rect, &tile);
     }
     assert_eq!(assembled.to_png(), whole.to_png());

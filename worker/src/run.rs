@@ -467,6 +467,23 @@ impl Backoff {
 mod tests {
     use super::*;
 
+    #[tokio::test]
+    async fn a_job_on_the_pool_answers_with_its_value_or_its_panic() {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let threads = on_pool(&pool, || rayon::current_num_threads()).await;
+        assert_eq!(threads, Ok(1), "ran on the pool itself");
+        let panicked = on_pool(&pool, || -> u32 { panic!("a broken tile") }).await;
+        assert_eq!(
+            panicked,
+            Err("rendering panicked: a broken tile".to_string())
+        );
+        // The pool survives a panicking job.
+        assert_eq!(on_pool(&pool, || 7).await, Ok(7));
+    }
+
     #[test]
     fn backoff_doubles_up_to_its_cap_with_jitter() {
         let mut b = Backoff::new(Duration::from_millis(100), Duration::from_millis(400));
