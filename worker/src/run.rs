@@ -473,7 +473,7 @@ mod tests {
             .num_threads(1)
             .build()
             .unwrap();
-        let threads = on_pool(&pool, || rayon::current_num_threads()).await;
+        let threads = on_pool(&pool, rayon::current_num_threads).await;
         assert_eq!(threads, Ok(1), "ran on the pool itself");
         let panicked = on_pool(&pool, || -> u32 { panic!("a broken tile") }).await;
         assert_eq!(
