@@ -126,8 +126,11 @@ impl<'a> Renderer<'a> {
             self.settings.width,
             self.settings.height
         );
-        buffer.clear();
-        buffer.resize(3 * rect.pixel_count(), 0.0);
+        // Every value is written below (a cancelled tile is dropped), so what the buffer
+        // holds can stay: only values past its length are set first.
+        let len = 3 * rect.pixel_count();
+        buffer.truncate(len);
+        buffer.resize(len, 0.0);
         let mut tile = Image {
             width: rect.width,
             height: rect.height,
