@@ -1,9 +1,10 @@
 //! An in-process farm: a coordinator on a loopback port and local workers sharing one scene
-//! cache. `coordinator render` and `coordinator report` submit to it over HTTP as a user
-//! submits to a real farm, and the workers lease, heartbeat and fail over HTTP like remote
-//! ones, so what they measure includes the farm's own overhead; only the workers' rendered
-//! tiles (and pass sums) are handed to the farm in memory ([`InProcess`]), through the same
-//! code the routes run.
+//! cache. `coordinator report` submits to it over HTTP as a user submits to a real farm;
+//! `coordinator render` submits in process ([`EmbeddedFarm::submit`]) through the route's
+//! checks. The workers lease, heartbeat and fail over HTTP like remote ones, so what the
+//! commands measure includes the farm's own overhead; only the workers' rendered tiles (and
+//! pass sums) are handed to the farm in memory ([`InProcess`]), through the same code the
+//! routes run.
 
 use std::future::Future;
 use std::path::PathBuf;
@@ -282,6 +283,20 @@ impl EmbeddedFarm {
         })
     }
 
+    /// Submits a job without HTTP, with the checks and answers of `POST /jobs` (see
+    /// `api::submit_in_process`): the farm is in this process, and so are the submission's
+    /// bytes.
+    pub async fn submit(
+        &self,
+        submission: protocol::client::Submission,
+    ) -> Result<protocol::JobInfo, ClientError> {
+        crate::api::submit_in_process(&self.farm, submission)
+            .await
+            .map_err(|crate::api::Failure(status, body)| {
+                ClientError::from_answer(status.as_u16(), body)
+            })
+    }
+
     /// The farm itself, for what the process that runs it may read without a request: its
     /// change notifications and finished images (`coordinator render`).
     pub fn farm(&self) -> &Arc<Farm> {
@@ -390,8 +405,7 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn local_workers_hand_every_tile_over_in_memory() {
-        let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../../shared/scenes/course/test.scene");
+        let scene = course("test.scene");
         let mut spec = protocol::JobSpec::default();
         (spec.render.width, spec.render.height, spec.tile_size) = (48, 32, 16);
         spec.render.spp = 1;
@@ -410,6 +424,60 @@ mod tests {
         assert_eq!(info.tiles_total, 6);
         assert_eq!(farm.handed_over(), 6, "every tile handed over, none posted");
         farm.shutdown().await;
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn an_in_process_submission_is_checked_as_the_route_checks_it() {
+        let farm = EmbeddedFarm::start(None, 1, 1, None).await.unwrap();
+        let mut spec = protocol::JobSpec::default();
+        (spec.render.width, spec.render.height, spec.render.spp) = (16, 8, 1);
+        let broken = protocol::client::Submission {
+            spec: spec.clone(),
+            scene_file: "broken.scene".into(),
+            scene: b"<scene>\n  <camera>\n".to_vec(),
+            assets: Vec::new(),
+        };
+        match farm.submit(broken).await {
+            Err(ClientError::Api {
+                status: 400, body, ..
+            }) => assert_eq!(
+                (body.file.as_deref(), body.line.is_some()),
+                (Some("broken.scene"), true),
+                "{body:?}"
+            ),
+            other => panic!("not refused with 400: {other:?}"),
+        }
+        // An asset outside the scene's folder is refused before anything is read.
+        let mut outside =
+            crate::cli::collect_submission(&course("test.scene"), spec.clone()).unwrap();
+        outside.assets.push(("../secret".into(), b"x".to_vec()));
+        assert!(matches!(
+            farm.submit(outside).await,
+            Err(ClientError::Api { status: 400, .. })
+        ));
+
+        let good = crate::cli::collect_submission(&course("test.scene"), spec).unwrap();
+        let job = farm.submit(good).await.unwrap();
+        assert_eq!(
+            (job.scene_file.as_str(), job.tiles_total),
+            ("test.scene", 1)
+        );
+        assert_eq!(farm.farm().job(job.id).unwrap().id, job.id);
+        let metrics = &farm.farm().metrics;
+        assert_eq!(
+            (
+                metrics.jobs_submitted.load(Ordering::Relaxed),
+                metrics.submissions_rejected.load(Ordering::Relaxed)
+            ),
+            (1, 2)
+        );
+        farm.shutdown().await;
+    }
+
+    fn course(scene: &str) -> PathBuf {
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../shared/scenes/course")
+            .join(scene)
     }
 
     #[test]

@@ -9,6 +9,7 @@ mod events;
 mod jobs;
 mod leases;
 
+pub(crate) use jobs::submit_in_process;
 pub(crate) use leases::{store_pixels, store_sums};
 #[cfg(test)]
 mod spec_tests;

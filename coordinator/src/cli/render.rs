@@ -1,6 +1,6 @@
-//! `coordinator render`: the one-command farm. An [`EmbeddedFarm`], the scene submitted over
-//! HTTP like any other job and rendered by workers that lease its tiles over HTTP (and hand
-//! the pixels over in memory), a progress bar, the PNG written, everything torn down.
+//! `coordinator render`: the one-command farm. An [`EmbeddedFarm`], the scene submitted in
+//! process through the checks of `POST /jobs` and rendered by workers that lease its tiles
+//! over HTTP (and hand the pixels over in memory), a progress bar, the PNG written.
 //!
 //! The farm runs in this process, so the command learns of the job's progress from the farm's
 //! change notifications and takes the finished image from it directly: polling the job and
@@ -80,7 +80,7 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
             farm.url(),
             farm.token()
         );
-        let result = submit_and_wait(&farm, &submission, &output, quiet, start).await;
+        let result = submit_and_wait(&farm, submission, &output, quiet, start).await;
         let in_memory = farm.in_memory();
         if in_memory {
             // Nothing of this farm outlives the process, which ends as soon as this returns:
@@ -98,11 +98,11 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
     result
 }
 
-/// Submits the scene to the in-process farm, waits for it with a progress bar and writes the
+/// Submits the scene to the in-process farm (no upload), waits for it with a progress bar and writes the
 /// PNG. Ctrl-C cancels the job.
 async fn submit_and_wait(
     farm: &EmbeddedFarm,
-    submission: &protocol::client::Submission,
+    submission: protocol::client::Submission,
     output: &std::path::Path,
     quiet: bool,
     start: Instant,
@@ -111,7 +111,7 @@ async fn submit_and_wait(
     let (workers, threads) = farm.size();
     // Subscribed before the job exists, so no change to it is missed.
     let mut events = farm.farm().subscribe();
-    let job = client.submit(submission).await.map_err(describe)?;
+    let job = farm.submit(submission).await.map_err(describe)?;
     let spp = match &job.spec.adaptive {
         Some(a) => format!("{}..{} spp progressive", a.spp_min, a.spp_max),
         None => format!("{} spp", job.spec.render.spp),
