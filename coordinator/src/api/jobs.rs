@@ -233,7 +233,9 @@ async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<J
 /// Submits a job in this process, as `POST /jobs` would with the same parts (every asset sent
 /// as bytes): the embedded farm's own submissions, which then skip hashing the assets to ask
 /// which the farm holds, the multipart upload and its copies (on dragon.scene about 7 ms of
-/// the farm's start). Refused with the route's status and message.
+/// the farm's start). Refused with the route's status and message. Nothing is uploaded, so
+/// `max_upload_bytes` does not apply: the bytes are already in this process, the user's own
+/// (the embedded farm lifts the scene budgets for the same reason).
 pub(crate) async fn submit_in_process(
     farm: &Arc<Farm>,
     submission: protocol::client::Submission,

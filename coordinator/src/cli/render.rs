@@ -98,8 +98,8 @@ fn render(args: RenderArgs) -> Result<(), Failure> {
     result
 }
 
-/// Submits the scene to the in-process farm (no upload), waits for it with a progress bar and writes the
-/// PNG. Ctrl-C cancels the job.
+/// Submits the scene to the in-process farm (no upload), waits for it with a progress bar and
+/// writes the PNG. Ctrl-C cancels the job.
 async fn submit_and_wait(
     farm: &EmbeddedFarm,
     submission: protocol::client::Submission,
