@@ -81,11 +81,14 @@ impl Handover for InProcess {
             } else {
                 crate::api::store_pixels(&self.farm, lease_id, bytes).await
             };
-            stored.map_err(|crate::api::Failure(status, body)| {
-                ClientError::from_answer(status.as_u16(), body)
-            })
+            stored.map_err(answer)
         })
     }
+}
+
+/// A route's refusal as the HTTP client would report its answer.
+fn answer(crate::api::Failure(status, body): crate::api::Failure) -> ClientError {
+    ClientError::from_answer(status.as_u16(), body)
 }
 
 /// A running in-process farm. Call [`EmbeddedFarm::shutdown`] to stop it cleanly.
@@ -292,9 +295,7 @@ impl EmbeddedFarm {
     ) -> Result<protocol::JobInfo, ClientError> {
         crate::api::submit_in_process(&self.farm, submission)
             .await
-            .map_err(|crate::api::Failure(status, body)| {
-                ClientError::from_answer(status.as_u16(), body)
-            })
+            .map_err(answer)
     }
 
     /// The farm itself, for what the process that runs it may read without a request: its

@@ -278,7 +278,7 @@ pub const FLAT_MODELS_MIN: usize = 2;
 /// in turn instead of walking the top level: their exact tests cost about what the walk's box
 /// tests do (test.scene, two spheres and a triangle: 3% faster). A model is left to the walk,
 /// whose box turns most rays away before the model's set-up (cube.scene tested linearly:
-/// 17% slower).
+/// 17% slower), unless it is the only object: its own test is exact, so its box adds nothing.
 const LINEAR_TOP: usize = 4;
 
 /// A triangle of a flattened model: its world-space corners, the model, and its slot in
@@ -382,7 +382,8 @@ pub struct World {
     top: Bvh,
     /// `top`'s nodes in the layout of the top level's own traversal.
     top_level: TopLevel,
-    /// Whether rays test every object in turn rather than walk `top` ([`LINEAR_TOP`]).
+    /// Whether rays test every object in turn rather than walk `top`: a single object, or a
+    /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
 }
 
@@ -450,10 +451,11 @@ impl World {
         let top = Bvh::build(&bounds);
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
         let top_level = TopLevel::new(&top);
-        let linear_top = objects.len() <= LINEAR_TOP
-            && objects
-                .iter()
-                .all(|o| !matches!(o, Object::Model(_) | Object::Mover(_)));
+        let linear_top = objects.len() == 1
+            || objects.len() <= LINEAR_TOP
+                && objects
+                    .iter()
+                    .all(|o| !matches!(o, Object::Model(_) | Object::Mover(_)));
         World {
             spheres,
             triangles,
@@ -489,8 +491,9 @@ impl World {
 
     /// Hands `test` every top-level slot the ray may reach before `*t_max` (which `test`
     /// shrinks), nearest first, or with `ANY` farthest first until `test` returns true. The
-    /// traversal is skipped when the level holds a single object (whose own test is exact, so
-    /// its box adds nothing), and rays outside the f32 box test's range take the generic one.
+    /// traversal is skipped where every slot is tested in turn (a single object, or a few
+    /// spheres and triangles: `linear_top`), and rays outside the f32 box test's range take
+    /// the generic one.
     #[inline(always)]
     fn traverse_top<const ANY: bool>(
         &self,
@@ -498,17 +501,6 @@ impl World {
         t_max: &mut f64,
         mut test: impl FnMut(usize, &mut f64) -> bool,
     ) -> bool {
-        if self.objects.len() == 1 {
-            return test(0, t_max);
-        }
-        if self.linear_top {
-            for slot in 0..self.objects.len() {
-                if test(slot, t_max) {
-                    return true;
-                }
-            }
-            return false;
-        }
         let mut leaf = |slots: std::ops::Range<usize>, t_max: &mut f64| {
             for slot in slots {
                 if test(slot, t_max) {
@@ -517,6 +509,9 @@ impl World {
             }
             false
         };
+        if self.linear_top {
+            return leaf(0..self.objects.len(), t_max);
+        }
         if let Some(found) = self.top_level.walk::<ANY>(ray, t_max, &mut leaf) {
             return found;
         }

@@ -144,35 +144,43 @@ pub async fn submit(State(app): AppState, req: Request) -> Response {
             ApiError::new(rejection.body_text()),
         )),
     };
-    match result {
-        Ok(info) => {
-            farm.metrics.jobs_submitted.fetch_add(1, Ordering::Relaxed);
-            (StatusCode::CREATED, Json(info)).into_response()
+    let result = result.map_err(|failure| {
+        if upload.too_large.load(Ordering::SeqCst) {
+            Failure(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                ApiError::new(format!("the upload exceeds the limit of {limit} bytes")),
+            )
+        } else if upload.stalled.load(Ordering::SeqCst) {
+            Failure(
+                StatusCode::REQUEST_TIMEOUT,
+                ApiError::new(format!(
+                    "the upload sent nothing for {}s (the idle timeout); abandoned",
+                    stall.as_secs_f64()
+                )),
+            )
+        } else {
+            failure
         }
+    });
+    match counted_submission(&farm, result) {
+        Ok(info) => (StatusCode::CREATED, Json(info)).into_response(),
+        Err(failure) => failure.into_response(),
+    }
+}
+
+/// Counts a submission's outcome in the farm's metrics (and logs a refusal), for the route
+/// and the in-process submission alike.
+fn counted_submission(farm: &Farm, result: ApiResult<JobInfo>) -> ApiResult<JobInfo> {
+    match &result {
+        Ok(_) => farm.metrics.jobs_submitted.fetch_add(1, Ordering::Relaxed),
         Err(failure) => {
-            let failure = if upload.too_large.load(Ordering::SeqCst) {
-                Failure(
-                    StatusCode::PAYLOAD_TOO_LARGE,
-                    ApiError::new(format!("the upload exceeds the limit of {limit} bytes")),
-                )
-            } else if upload.stalled.load(Ordering::SeqCst) {
-                Failure(
-                    StatusCode::REQUEST_TIMEOUT,
-                    ApiError::new(format!(
-                        "the upload sent nothing for {}s (the idle timeout); abandoned",
-                        stall.as_secs_f64()
-                    )),
-                )
-            } else {
-                failure
-            };
+            tracing::info!("submission refused ({}): {}", failure.0, failure.1.error);
             farm.metrics
                 .submissions_rejected
-                .fetch_add(1, Ordering::Relaxed);
-            tracing::info!("submission refused ({}): {}", failure.0, failure.1.error);
-            failure.into_response()
+                .fetch_add(1, Ordering::Relaxed)
         }
-    }
+    };
+    result
 }
 
 async fn submit_inner(app: &super::App, mut multipart: Multipart) -> ApiResult<JobInfo> {
@@ -245,14 +253,7 @@ pub(crate) async fn submit_in_process(
         Ok(parts) => accept_submission(farm, submission.spec, scene, parts).await,
         Err(failure) => Err(failure),
     };
-    match &result {
-        Ok(_) => farm.metrics.jobs_submitted.fetch_add(1, Ordering::Relaxed),
-        Err(_) => farm
-            .metrics
-            .submissions_rejected
-            .fetch_add(1, Ordering::Relaxed),
-    };
-    result
+    counted_submission(farm, result)
 }
 
 /// An in-process submission's assets as parts, refused as the route refuses their parts.
