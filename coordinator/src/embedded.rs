@@ -1,22 +1,21 @@
 //! An in-process farm: a coordinator on a loopback port and local workers sharing one scene
 //! cache. `coordinator report` submits to it over HTTP as a user submits to a real farm;
 //! `coordinator render` submits in process ([`EmbeddedFarm::submit`]) through the route's
-//! checks. The workers lease, heartbeat and fail over HTTP like remote ones, so what the
-//! commands measure includes the farm's own overhead; only the workers' rendered tiles (and
-//! pass sums) are handed to the farm in memory ([`InProcess`]), through the same code the
-//! routes run.
+//! checks. The workers register, lease, read pass sums and deliver their tiles in process
+//! ([`InProcess`]), through the same code the routes run, so what the commands measure
+//! includes the farm's own scheduling, storage and assembly; heartbeats, failures and
+//! hand-backs go over HTTP like a remote worker's.
 
-use std::future::Future;
 use std::path::PathBuf;
-use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
+use axum::http::StatusCode;
 use protocol::client::{Bytes, Client, ClientError};
-use protocol::Completion;
+use protocol::{Completion, Lease, LeaseRequest, WorkerIdentity};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
-use worker::pass::Handover;
+use worker::pass::{BoxFuture, Handover};
 use worker::{SceneCache, Shutdown, Worker, WorkerConfig, WorkerStats};
 
 use crate::clock::SystemClock;
@@ -68,12 +67,33 @@ struct InProcess {
 }
 
 impl Handover for InProcess {
-    fn complete(
-        &self,
-        lease_id: u64,
-        bytes: Bytes,
-        pass: bool,
-    ) -> Pin<Box<dyn Future<Output = Result<Completion, ClientError>> + Send + '_>> {
+    fn register(&self, name: &str) -> BoxFuture<'_, WorkerIdentity> {
+        let registered = self.farm.register_worker(name);
+        if let Ok(identity) = &registered {
+            // Listed where a remote worker shows its peer address.
+            (self.farm).worker_address(identity.worker_id, "in process".into());
+        }
+        Box::pin(async move { registered.map_err(|e| answer(e.into())) })
+    }
+
+    fn lease(&self, req: LeaseRequest) -> BoxFuture<'_, Option<Lease>> {
+        Box::pin(async move {
+            crate::api::wait_for_lease(&self.farm, &req)
+                .await
+                .map_err(|failure| match failure.0 {
+                    // What the HTTP client makes of the route's 404: register again.
+                    StatusCode::NOT_FOUND => ClientError::UnknownWorker(failure.1.error),
+                    _ => answer(failure),
+                })
+        })
+    }
+
+    fn sums(&self, lease_id: u64) -> BoxFuture<'_, Vec<u8>> {
+        let sums = crate::api::sums_in_process(&self.farm, lease_id);
+        Box::pin(async move { sums.map_err(answer) })
+    }
+
+    fn complete(&self, lease_id: u64, bytes: Bytes, pass: bool) -> BoxFuture<'_, Completion> {
         self.handed.fetch_add(1, Ordering::Relaxed);
         Box::pin(async move {
             let stored = if pass {
@@ -364,7 +384,7 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn the_in_process_handover_answers_as_the_pixels_route_does() {
+    async fn the_in_process_handover_answers_as_the_routes_do() {
         let farm = Farm::open_in_memory(FarmConfig::default(), Arc::new(SystemClock)).unwrap();
         farm.submit(crate::farm::tests::new_job("handover"))
             .unwrap();
@@ -402,10 +422,31 @@ mod tests {
             .unwrap();
         assert_eq!((done.tiles_done, done.tiles_total), (1, 4));
         assert_eq!(handover.handed.load(Ordering::Relaxed), 4);
+
+        // Leases in process: the next tile, and an unknown worker told to register again as
+        // the HTTP client tells it.
+        let identity = handover.register("in-process").await.unwrap();
+        let ask = |worker_id| LeaseRequest {
+            worker_id,
+            wait_ms: 0,
+        };
+        let lease = handover.lease(ask(identity.worker_id)).await.unwrap();
+        let lease = lease.expect("three tiles are still queued");
+        let unknown = handover.lease(ask(9999)).await;
+        assert!(
+            matches!(unknown, Err(ClientError::UnknownWorker(_))),
+            "{unknown:?}"
+        );
+        // A plain tile has no pass sums: the sums route's refusal (409).
+        let refusal = handover.sums(lease.lease_id).await;
+        assert!(
+            matches!(&refusal, Err(ClientError::Stale(why)) if why.contains("not a pass")),
+            "{refusal:?}"
+        );
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn local_workers_hand_every_tile_over_in_memory() {
+    async fn local_workers_lease_and_hand_every_tile_over_in_process() {
         let scene = course("test.scene");
         let mut spec = protocol::JobSpec::default();
         (spec.render.width, spec.render.height, spec.tile_size) = (48, 32, 16);
@@ -424,6 +465,12 @@ mod tests {
         assert_eq!(info.state, protocol::JobState::Done, "{:?}", info.error);
         assert_eq!(info.tiles_total, 6);
         assert_eq!(farm.handed_over(), 6, "every tile handed over, none posted");
+        // A lease asked over HTTP would have recorded the worker's loopback address.
+        let workers = farm.farm().workers();
+        assert_eq!(workers.len(), SLOTS, "one identity per pull loop");
+        for worker in workers {
+            assert_eq!(worker.address.as_deref(), Some("in process"), "{worker:?}");
+        }
         farm.shutdown().await;
     }
 

@@ -84,7 +84,8 @@ pub struct Worker {
     config: WorkerConfig,
     scenes: Arc<SceneCache>,
     pool: Arc<rayon::ThreadPool>,
-    /// Where rendered leases go instead of the HTTP routes (see [`pass::Handover`]).
+    /// What the worker asks and sends in process rather than over HTTP (see
+    /// [`pass::Handover`]).
     handover: Option<Arc<dyn pass::Handover>>,
     /// Buffers of tiles already sent, rendered into again.
     buffers: TileBuffers,
@@ -131,8 +132,8 @@ impl Worker {
         }
     }
 
-    /// Hands rendered leases to `handover` rather than posting them: for a worker in the
-    /// coordinator's own process.
+    /// Registers, leases and hands rendered leases over through `handover` rather than over
+    /// HTTP: for a worker in the coordinator's own process.
     pub fn with_handover(mut self, handover: Arc<dyn pass::Handover>) -> Self {
         self.handover = Some(handover);
         self
@@ -194,7 +195,10 @@ impl Worker {
         let req = match request {
             Some(req) => req,
             None => {
-                let identity = self.client.register(&self.config.name).await?;
+                let identity = match &self.handover {
+                    Some(handover) => handover.register(&self.config.name).await?,
+                    None => self.client.register(&self.config.name).await?,
+                };
                 tracing::info!(
                     "registered as worker {} ({})",
                     identity.worker_id,
@@ -206,7 +210,10 @@ impl Worker {
                 })
             }
         };
-        self.client.lease(req).await
+        match &self.handover {
+            Some(handover) => handover.lease(req.clone()).await,
+            None => self.client.lease(req).await,
+        }
     }
 
     async fn work(
@@ -240,7 +247,7 @@ impl Worker {
             }
         };
 
-        let begin = match pass::start(&self.client, &lease).await {
+        let begin = match pass::start(&self.client, self.handover.as_deref(), &lease).await {
             Ok(begin) => begin,
             Err(ClientError::Stale(why)) => {
                 stats.dropped += 1;

@@ -12,7 +12,7 @@ use axum::extract::{ConnectInfo, Path, State};
 use axum::http::{Extensions, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
-use protocol::{Completion, FailureReport, JobInfo, LeaseRequest, LeaseStatus};
+use protocol::{Completion, FailureReport, JobInfo, Lease, LeaseRequest, LeaseStatus};
 
 use super::{blocking, parse_id, parse_json, ApiResult, AppState, Failure};
 use crate::farm::{Farm, FarmError};
@@ -40,12 +40,21 @@ pub async fn lease(
     body: Bytes,
 ) -> ApiResult<Response> {
     let req: LeaseRequest = parse_json(&body)?;
-    let farm = &app.farm;
     // Present when the server was started with connection info (it always is but in tests
     // that build the router alone).
     if let Some(ConnectInfo(peer)) = extensions.get::<ConnectInfo<SocketAddr>>() {
-        farm.worker_address(req.worker_id, peer.to_string());
+        app.farm.worker_address(req.worker_id, peer.to_string());
     }
+    Ok(match wait_for_lease(&app.farm, &req).await? {
+        Some(lease) => Json(lease).into_response(),
+        None => StatusCode::NO_CONTENT.into_response(),
+    })
+}
+
+/// A tile for `req`'s worker, waiting up to its `wait_ms` (capped by the farm's
+/// `max_poll_wait`) for one to turn up; None when none did. Answers once the lease is
+/// committed: the lease route, and the embedded farm's workers asking in process.
+pub(crate) async fn wait_for_lease(farm: &Farm, req: &LeaseRequest) -> ApiResult<Option<Lease>> {
     let start = Instant::now();
     let wait = Duration::from_millis(req.wait_ms).min(farm.config().max_poll_wait);
     let deadline = start + wait;
@@ -60,7 +69,7 @@ pub async fn lease(
         if let Some(lease) = farm.lease(req.worker_id)? {
             farm.durable(farm.written()).await?;
             farm.metrics.observe_lease_latency(start.elapsed());
-            return Ok(Json(lease).into_response());
+            return Ok(Some(lease));
         }
         let now = Instant::now();
         if now >= deadline {
@@ -75,7 +84,7 @@ pub async fn lease(
     farm.metrics
         .lease_polls_empty
         .fetch_add(1, Ordering::Relaxed);
-    Ok(StatusCode::NO_CONTENT.into_response())
+    Ok(None)
 }
 
 pub async fn heartbeat(
@@ -181,6 +190,12 @@ pub async fn sums(State(app): AppState, Path(id): Path<String>) -> ApiResult<Res
         bytes,
     )
         .into_response())
+}
+
+/// A pass lease's running sums so far, for the embedded farm's workers asking in process:
+/// what the sums route answers, without the copy into a response.
+pub(crate) fn sums_in_process(farm: &Farm, id: u64) -> ApiResult<Vec<u8>> {
+    stale_counted(farm, farm.lease_sums(id))
 }
 
 /// A pass lease's new sums: the tile's part of the pass is done.
