@@ -324,12 +324,45 @@ impl Image {
 /// floating-point summation leaves it a hair below (conventions §0.4). NaN maps to 0.
 pub fn quantize(v: f32) -> u8 {
     let v = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
-    ((v as f64) * 255.0 + 1e-4).floor().min(255.0) as u8
+    // The value is in [0, 255.0001], where truncation is the floor: an integer conversion
+    // instead of a call to libm's `floor` per channel (x86-64's baseline has no rounding
+    // instruction), which took a quarter of an 800×600 PNG's encoding.
+    ((v as f64) * 255.0 + 1e-4).min(255.0) as u8
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn quantisation_is_the_floor_of_the_scaled_value_for_every_input() {
+        let reference = |v: f32| -> u8 {
+            let v = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
+            ((v as f64) * 255.0 + 1e-4).floor().min(255.0) as u8
+        };
+        // Every 61st float from 0 to 1, every float next to a step, and the odd ones out.
+        let mut inputs: Vec<f32> = (0..=1.0f32.to_bits())
+            .step_by(61)
+            .map(f32::from_bits)
+            .collect();
+        for k in 0..=255u32 {
+            let step = ((k as f64 - 1e-4) / 255.0) as f32;
+            let bits = step.max(0.0).to_bits();
+            inputs.extend((bits.saturating_sub(4)..bits + 4).map(f32::from_bits));
+        }
+        inputs.extend([
+            -0.0,
+            -1.0,
+            1.0,
+            1.5,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+        ]);
+        for v in inputs {
+            assert_eq!(quantize(v), reference(v), "{v:e}");
+        }
+    }
 
     #[test]
     fn quantisation_truncates_without_gamma() {
