@@ -1,6 +1,6 @@
 //! `coordinator render`: the one-command farm. An [`EmbeddedFarm`], the scene submitted in
-//! process through the checks of `POST /jobs` and rendered by workers that lease its tiles
-//! over HTTP (and hand the pixels over in memory), a progress bar, the PNG written.
+//! process through the checks of `POST /jobs` and rendered by workers that lease its tiles and
+//! hand the pixels over in process (through the routes' code), a progress bar, the PNG written.
 //!
 //! The farm runs in this process, so the command learns of the job's progress from the farm's
 //! change notifications and takes the finished image from it directly: polling the job and
