@@ -15,7 +15,7 @@ use protocol::client::{Bytes, Client, ClientError};
 use protocol::{Completion, Lease, LeaseRequest, WorkerIdentity};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
-use worker::pass::{BoxFuture, Handover};
+use worker::link::{Answer, Link};
 use worker::{SceneCache, Shutdown, Worker, WorkerConfig, WorkerStats};
 
 use crate::clock::SystemClock;
@@ -57,26 +57,27 @@ pub fn local_tile_size(spec: &protocol::JobSpec, workers: usize) -> u32 {
     size.max(default)
 }
 
-/// The local workers' rendered tiles and pass sums, handed to the farm in memory by the same
-/// code the routes run (validation, storage, the commit wait), with the errors the routes'
-/// answers would give.
+/// The local workers' link to the farm: registration, leases, pass sums and rendered tiles
+/// handled in memory by the same code the routes run (validation, storage, the commit wait),
+/// with the errors the routes' answers would give.
 struct InProcess {
     farm: Arc<Farm>,
     /// Completions handed over, accepted or not.
     handed: AtomicU64,
 }
 
-impl Handover for InProcess {
-    fn register(&self, name: &str) -> BoxFuture<'_, WorkerIdentity> {
+impl Link for InProcess {
+    fn register<'a>(&'a self, name: &'a str) -> Answer<'a, WorkerIdentity> {
         let registered = self.farm.register_worker(name);
         if let Ok(identity) = &registered {
             // Listed where a remote worker shows its peer address.
-            (self.farm).worker_address(identity.worker_id, "in process".into());
+            self.farm
+                .worker_address(identity.worker_id, "in process".into());
         }
         Box::pin(async move { registered.map_err(|e| answer(e.into())) })
     }
 
-    fn lease(&self, req: LeaseRequest) -> BoxFuture<'_, Option<Lease>> {
+    fn lease(&self, req: LeaseRequest) -> Answer<'_, Option<Lease>> {
         Box::pin(async move {
             crate::api::wait_for_lease(&self.farm, &req)
                 .await
@@ -88,12 +89,12 @@ impl Handover for InProcess {
         })
     }
 
-    fn sums(&self, lease_id: u64) -> BoxFuture<'_, Vec<u8>> {
-        let sums = crate::api::sums_in_process(&self.farm, lease_id);
+    fn sums(&self, lease_id: u64) -> Answer<'_, Vec<u8>> {
+        let sums = crate::api::read_sums(&self.farm, lease_id);
         Box::pin(async move { sums.map_err(answer) })
     }
 
-    fn complete(&self, lease_id: u64, bytes: Bytes, pass: bool) -> BoxFuture<'_, Completion> {
+    fn complete(&self, lease_id: u64, bytes: Bytes, pass: bool) -> Answer<'_, Completion> {
         self.handed.fetch_add(1, Ordering::Relaxed);
         Box::pin(async move {
             let stored = if pass {
@@ -114,7 +115,7 @@ fn answer(crate::api::Failure(status, body): crate::api::Failure) -> ClientError
 /// A running in-process farm. Call [`EmbeddedFarm::shutdown`] to stop it cleanly.
 pub struct EmbeddedFarm {
     farm: Arc<Farm>,
-    handover: Arc<InProcess>,
+    link: Arc<InProcess>,
     client: Client,
     url: String,
     token: String,
@@ -281,7 +282,7 @@ impl EmbeddedFarm {
         ));
         let client = Client::new(&url, Some(token.clone())).map_err(|e| e.to_string())?;
 
-        let handover = Arc::new(InProcess {
+        let link = Arc::new(InProcess {
             farm: farm.clone(),
             handed: AtomicU64::new(0),
         });
@@ -330,14 +331,14 @@ impl EmbeddedFarm {
                 let config = WorkerConfig::new(label, n);
                 let worker =
                     Worker::with_pool(client.clone(), config, scenes.clone(), pool.clone())
-                        .with_handover(handover.clone() as Arc<dyn Handover>);
+                        .with_link(link.clone() as Arc<dyn Link>);
                 let shutdown = shutdown.clone();
                 worker_tasks.push(tokio::spawn(async move { worker.run(shutdown).await }));
             }
         }
         Ok(Self {
             farm,
-            handover,
+            link,
             client,
             url,
             token,
@@ -373,7 +374,7 @@ impl EmbeddedFarm {
     /// How many rendered tiles (or pass sums) the local workers handed to the farm in memory
     /// rather than over HTTP.
     pub fn handed_over(&self) -> u64 {
-        self.handover.handed.load(Ordering::Relaxed)
+        self.link.handed.load(Ordering::Relaxed)
     }
 
     /// A client authorised on this farm.

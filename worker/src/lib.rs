@@ -3,12 +3,14 @@
 //!
 //! - [`scenes`]: each job's scene fetched and built once, shared by in-process workers.
 //! - [`run`]: the pull loop: lease, render with heartbeats, complete; back-off and hand-back.
+//! - [`link`]: the coordinator as the pull loop reaches it: over HTTP, or in process.
 //! - [`pass`]: what a lease renders and where it goes: pixels, or a progressive pass's sums.
 //! - [`config_file`]: flags from a TOML file, below the command line and the environment.
 //! - [`health`]: liveness and readiness probes over plain HTTP (`--health-listen`).
 
 pub mod config_file;
 pub mod health;
+pub mod link;
 pub mod pass;
 pub mod run;
 pub mod scenes;

@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::watch;
 
+use crate::link::Link;
 use crate::pass;
 use crate::scenes::{LoadError, SceneCache};
 use protocol::client::{Client, ClientError, TileBuffers};
@@ -84,9 +85,9 @@ pub struct Worker {
     config: WorkerConfig,
     scenes: Arc<SceneCache>,
     pool: Arc<rayon::ThreadPool>,
-    /// What the worker asks and sends in process rather than over HTTP (see
-    /// [`pass::Handover`]).
-    handover: Option<Arc<dyn pass::Handover>>,
+    /// How the worker registers, leases and delivers: `client` itself, unless an
+    /// in-process link replaced it ([`Worker::with_link`]).
+    link: Arc<dyn Link>,
     /// Buffers of tiles already sent, rendered into again.
     buffers: TileBuffers,
 }
@@ -123,19 +124,19 @@ impl Worker {
         pool: Arc<rayon::ThreadPool>,
     ) -> Self {
         Self {
+            link: Arc::new(client.clone()),
             client,
             config,
             scenes,
             pool,
-            handover: None,
             buffers: TileBuffers::default(),
         }
     }
 
-    /// Registers, leases and hands rendered leases over through `handover` rather than over
-    /// HTTP: for a worker in the coordinator's own process.
-    pub fn with_handover(mut self, handover: Arc<dyn pass::Handover>) -> Self {
-        self.handover = Some(handover);
+    /// Registers, leases and delivers through `link` rather than over HTTP: for a worker in
+    /// the coordinator's own process.
+    pub fn with_link(mut self, link: Arc<dyn Link>) -> Self {
+        self.link = link;
         self
     }
 
@@ -195,10 +196,7 @@ impl Worker {
         let req = match request {
             Some(req) => req,
             None => {
-                let identity = match &self.handover {
-                    Some(handover) => handover.register(&self.config.name).await?,
-                    None => self.client.register(&self.config.name).await?,
-                };
+                let identity = self.link.register(&self.config.name).await?;
                 tracing::info!(
                     "registered as worker {} ({})",
                     identity.worker_id,
@@ -210,10 +208,7 @@ impl Worker {
                 })
             }
         };
-        match &self.handover {
-            Some(handover) => handover.lease(req.clone()).await,
-            None => self.client.lease(req).await,
-        }
+        self.link.lease(req.clone()).await
     }
 
     async fn work(
@@ -247,7 +242,7 @@ impl Worker {
             }
         };
 
-        let begin = match pass::start(&self.client, self.handover.as_deref(), &lease).await {
+        let begin = match pass::start(self.link.as_ref(), &lease).await {
             Ok(begin) => begin,
             Err(ClientError::Stale(why)) => {
                 stats.dropped += 1;
@@ -321,7 +316,7 @@ impl Worker {
         // coordinator honours leases granted before it went down.
         let mut retry = Backoff::new(Duration::from_millis(100), self.config.max_backoff);
         loop {
-            match pass::deliver(&self.client, self.handover.as_deref(), &lease, &output).await {
+            match pass::deliver(self.link.as_ref(), &lease, &output).await {
                 Ok(done) => {
                     stats.rendered += 1;
                     tracing::info!(

@@ -200,7 +200,7 @@ pub(crate) async fn store_pixels(farm: &Arc<Farm>, id: u64, body: Bytes) -> ApiR
 /// A pass lease's running sums so far (f64 little-endian).
 pub async fn sums(State(app): AppState, Path(id): Path<String>) -> ApiResult<Response> {
     let id = parse_id("lease", &id)?;
-    let bytes = counted(&app, app.farm.lease_sums(id))?;
+    let bytes = read_sums(&app.farm, id)?;
     Ok((
         [(axum::http::header::CONTENT_TYPE, "application/octet-stream")],
         bytes,
@@ -208,9 +208,9 @@ pub async fn sums(State(app): AppState, Path(id): Path<String>) -> ApiResult<Res
         .into_response())
 }
 
-/// A pass lease's running sums so far, for the embedded farm's workers asking in process:
-/// what the sums route answers, without the copy into a response.
-pub(crate) fn sums_in_process(farm: &Farm, id: u64) -> ApiResult<Vec<u8>> {
+/// A pass lease's running sums so far: the sums route, and the embedded farm's workers
+/// asking in process.
+pub(crate) fn read_sums(farm: &Farm, id: u64) -> ApiResult<Vec<u8>> {
     stale_counted(farm, farm.lease_sums(id))
 }
 

@@ -10,7 +10,7 @@ mod jobs;
 mod leases;
 
 pub(crate) use jobs::submit_in_process;
-pub(crate) use leases::{store_pixels, store_sums, sums_in_process, wait_for_lease};
+pub(crate) use leases::{read_sums, store_pixels, store_sums, wait_for_lease};
 #[cfg(test)]
 mod spec_tests;
 mod workers;
