@@ -6,7 +6,7 @@
 use glam::{DQuat, DVec3};
 
 use crate::geometry::Ray;
-use crate::sampler::{concentric_disk, progressive_strata_from, strata, Rng, SampleOrder, Stream};
+use crate::sampler::{concentric_disk, strata, Rng, SampleOrder, StrataOrder, Stream};
 use crate::scene::{CameraDesc, Scene};
 use crate::settings::{CameraOverride, RenderSettings};
 
@@ -149,6 +149,8 @@ pub struct EyeRays<'a> {
     spp: u32,
     seed: u64,
     strata: (u32, u32),
+    /// The progressive order of those strata, made when first asked for.
+    progressive: std::sync::OnceLock<StrataOrder>,
     /// Time of the shutter's opening for this frame, and how long it stays open.
     time_open: f64,
     shutter_length: f64,
@@ -183,6 +185,7 @@ impl<'a> EyeRays<'a> {
             spp: settings.spp,
             seed: settings.seed,
             strata: strata(settings.spp),
+            progressive: std::sync::OnceLock::new(),
             time_open,
             shutter_length,
             sample_time: moving,
@@ -231,15 +234,10 @@ impl<'a> EyeRays<'a> {
     ) {
         match order {
             SampleOrder::Grid => out.clear(),
-            SampleOrder::Progressive => progressive_strata_from(
-                self.seed,
-                x,
-                y,
-                self.strata,
-                samples.start,
-                samples.end,
-                out,
-            ),
+            SampleOrder::Progressive => self
+                .progressive
+                .get_or_init(|| StrataOrder::new(self.strata))
+                .fill(self.seed, x, y, samples.start, samples.end, out),
         }
     }
 

@@ -215,6 +215,56 @@ pub fn progressive_strata_from(
     out.drain(..from);
 }
 
+/// [`progressive_strata_from`] for one grid, with its Morton codes decoded once into a table
+/// where the grid is a power of two both ways and small (a progressive job's `spp_max`): the
+/// decode's loop over the code's bits was a third of the order's cost, itself 1.9 % of a
+/// progressive stacks.scene render.
+#[derive(Clone, Debug)]
+pub struct StrataOrder {
+    grid: (u32, u32),
+    /// Stratum of each Morton code, when decoded ahead.
+    stratum_of_code: Option<Vec<u32>>,
+}
+
+impl StrataOrder {
+    /// Grids of up to this many strata get a decoded table (16 KiB).
+    const TABLE_MAX: u32 = 4096;
+
+    pub fn new((cols, rows): (u32, u32)) -> Self {
+        let table = cols.is_power_of_two()
+            && rows.is_power_of_two()
+            && cols.saturating_mul(rows) <= Self::TABLE_MAX;
+        let stratum_of_code = table.then(|| {
+            let (bx, by) = (cols.trailing_zeros(), rows.trailing_zeros());
+            (0..cols * rows)
+                .map(|code| {
+                    let (cx, cy) = morton_decode(code as u64, bx, by);
+                    cx + cy * cols
+                })
+                .collect()
+        });
+        Self {
+            grid: (cols, rows),
+            stratum_of_code,
+        }
+    }
+
+    /// Exactly [`progressive_strata_from`]`(seed, x, y, grid, from, limit, out)`.
+    pub fn fill(&self, seed: u64, x: u32, y: u32, from: u32, limit: u32, out: &mut Vec<u32>) {
+        let Some(table) = &self.stratum_of_code else {
+            return progressive_strata_from(seed, x, y, self.grid, from, limit, out);
+        };
+        out.clear();
+        let limit = limit.min(table.len() as u32);
+        let bits = table.len().trailing_zeros();
+        let pixel_seed = mix(mix(seed ^ 0x2545f4914f6cdd1d) ^ (((y as u64) << 32) | x as u64));
+        out.extend(
+            (from.min(limit) as u64..limit as u64)
+                .map(|k| table[scrambled_code(k, bits, pixel_seed) as usize]),
+        );
+    }
+}
+
 /// Sample k's `bits`-bit Morton code: k's bits reversed (the coarsest cells first) after a
 /// nested scramble. A hash-based Owen scramble (Laine and Karras; Burley's constants,
 /// "Practical Hash-based Owen Scrambling", JCGT 2020) of the reversed code is, before the
@@ -405,6 +455,35 @@ mod tests {
         progressive_strata(3, 10, 20, (8, 8), 64, &mut order);
         progressive_strata_from(3, 10, 20, (8, 8), 13, 40, &mut other);
         assert_eq!(other, order[13..40]);
+    }
+
+    #[test]
+    fn a_decoded_strata_order_is_the_order_itself() {
+        // Table-driven (power-of-two grids up to 4096 strata) and not, every range of a few
+        // pixels' samples equals `progressive_strata_from`'s.
+        let (mut expected, mut got) = (Vec::new(), Vec::new());
+        for grid in [
+            (1, 1),
+            (2, 1),
+            (4, 4),
+            (16, 8),
+            (16, 32),
+            (64, 64),
+            (128, 64),
+            (5, 8),
+        ] {
+            let order = StrataOrder::new(grid);
+            let strata = grid.0 * grid.1;
+            for (x, y) in [(0, 0), (3, 7), (799, 599)] {
+                for (from, limit) in [(0, strata), (0, 1), (8, 16), (5, 23), (strata / 2, strata)] {
+                    progressive_strata_from(11, x, y, grid, from, limit, &mut expected);
+                    order.fill(11, x, y, from, limit, &mut got);
+                    assert_eq!(got, expected, "grid {grid:?} pixel {x},{y} {from}..{limit}");
+                }
+            }
+        }
+        assert!(StrataOrder::new((16, 32)).stratum_of_code.is_some());
+        assert!(StrataOrder::new((128, 64)).stratum_of_code.is_none());
     }
 
     #[test]
