@@ -390,8 +390,9 @@ impl RowShader<'_> {
         // sample's rays depend on its index alone, so the sums are the same bits.
         let reordered = self.renderer.trace_by_stratum && !self.order.is_empty();
         if reordered {
-            // Strata are distinct and fewer than the strata of spp: a bitmap sorts them in
-            // O(strata / 64 + samples), where a comparison sort cost as much as it saved.
+            // A pixel's strata are distinct numbers below spp (its grid is cols × rows = spp):
+            // a bitmap sorts them in O(spp / 64 + samples), where a comparison sort cost as
+            // much as it saved.
             let order = &self.order;
             let strata = self.renderer.settings.spp as usize;
             self.marks.resize(strata.div_ceil(64), 0);
