@@ -98,27 +98,6 @@ pub fn pixels_body(pixels: Vec<f32>) -> Bytes {
     little_endian_body(pixels, None)
 }
 
-/// A pass's running sums as the body [`Client::complete_sums`] sends (f64 little-endian, as
-/// `SumImage::to_bytes`): on a little-endian machine the worker's own buffer, not a copy
-/// (value by value, the copy took 0.5 % of a progressive cornell_box render).
-pub fn sums_body(sums: Vec<f64>) -> Bytes {
-    #[cfg(target_endian = "big")]
-    let sums: Vec<f64> = sums
-        .into_iter()
-        .map(|value| f64::from_ne_bytes(value.to_le_bytes()))
-        .collect();
-    Bytes::from_owner(LittleEndianSums(sums))
-}
-
-/// f64 values already in little-endian byte order, read as bytes.
-struct LittleEndianSums(Vec<f64>);
-
-impl AsRef<[u8]> for LittleEndianSums {
-    fn as_ref(&self) -> &[u8] {
-        bytemuck::cast_slice(&self.0)
-    }
-}
-
 fn little_endian_body(pixels: Vec<f32>, home: Option<TileBuffers>) -> Bytes {
     // Each value's bytes put in little-endian order, in place.
     #[cfg(target_endian = "big")]
@@ -497,16 +476,6 @@ mod tests {
         assert_eq!(&body[..], &crate::pixels_to_bytes(&pixels)[..]);
         let rect = tracer_core::TileRect::new(0, 0, 2, 1);
         assert_eq!(crate::pixels_from_bytes(&body, rect).unwrap(), pixels);
-    }
-
-    #[test]
-    fn a_sums_body_is_the_wire_format() {
-        let sums = vec![0.0, 1.5, -2.25, f64::MAX, 1e-300, 0.1, 7.0];
-        let body = sums_body(sums.clone());
-        assert_eq!(
-            &body[..],
-            &tracer_core::adaptive::SumImage::to_bytes(&sums)[..]
-        );
     }
 
     #[test]

@@ -218,8 +218,9 @@ pub fn progressive_strata_from(
 /// [`progressive_strata_from`] for one grid, with its Morton codes decoded once into a table
 /// where the grid is a power of two both ways and small (a progressive job's `spp_max`). The
 /// table is indexed by the scrambled index's low bits before their reversal, so a sample
-/// costs the scramble's multiplications and one load (the decode's loop over the code's bits
-/// and the reversal were most of the order's cost, 1.9 % of a progressive stacks.scene render).
+/// costs the scramble's multiplications and one load. The decode's loop over the code's bits
+/// was most of the order's cost: on a progressive stacks.scene render the order took 1.9 %
+/// before the table and 0.4 % after it.
 #[derive(Clone, Debug)]
 pub struct StrataOrder {
     grid: (u32, u32),

@@ -5,7 +5,7 @@
 
 use std::sync::atomic::AtomicBool;
 
-use protocol::client::{sums_body, Bytes, ClientError, TileBuffers};
+use protocol::client::{Bytes, ClientError, TileBuffers};
 use protocol::{Completion, Lease};
 use tracer_core::adaptive::{block_of, SumImage};
 use tracer_core::{Renderer, SampleOrder, Scene};
@@ -58,7 +58,7 @@ pub fn render(
             let samples = |x: u32, y: u32| pass.block_range(block_of(width, x, y) as u32);
             let done = renderer.render_tile_samples(lease.rect, &samples, &mut sums, cancel);
             Ok(done.then(|| Output {
-                bytes: sums_body(sums),
+                bytes: Bytes::from(SumImage::to_bytes(&sums)),
                 pass: true,
             }))
         }
