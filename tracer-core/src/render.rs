@@ -280,6 +280,7 @@ impl<'a> Renderer<'a> {
             order: Vec::new(),
             slots: Vec::new(),
             eyes: Vec::new(),
+            picks: Vec::new(),
             rays: Vec::new(),
             hits: Vec::new(),
             visit: Vec::new(),
@@ -311,8 +312,9 @@ struct RowShader<'r> {
     /// The top-level slots the current pixel's eye-ray frustum meets (see
     /// [`World::frustum_slots`]); kept for the row, so no allocation per pixel.
     slots: Vec<u32>,
-    /// The eye samples of the current packet.
+    /// The eye samples of the current packet, and their (sample, stratum) pairs.
     eyes: Vec<EyeSample>,
+    picks: Vec<(u32, u32)>,
     /// Their rays and hits (kept for the row, so no allocation per pixel).
     rays: Vec<Ray>,
     hits: Vec<Option<Hit>>,
@@ -433,10 +435,12 @@ impl RowShader<'_> {
         while start < count {
             let end = count.min(start + PACKET as u32);
             self.eyes.clear();
-            self.eyes.extend((start..end).map(|j| {
+            self.picks.clear();
+            self.picks.extend((start..end).map(|j| {
                 let s = sample_at(j);
-                eye.sample_in(x, self.y, s, stratum(&self.order, s))
+                (s, stratum(&self.order, s))
             }));
+            eye.samples_in(x, self.y, &self.picks, &mut self.eyes);
             if let Some(slots) = packet_slots {
                 self.rays.clear();
                 self.rays.extend(self.eyes.iter().map(|e| e.ray));

@@ -34,6 +34,11 @@ impl Rng {
         }
     }
 
+    /// A generator at `state` (a placeholder to be overwritten, in arrays of streams).
+    pub const fn from_state(state: u64) -> Rng {
+        Rng { state }
+    }
+
     #[inline]
     pub fn next_u64(&mut self) -> u64 {
         self.state = self.state.wrapping_add(0x9e3779b97f4a7c15);

@@ -31,6 +31,19 @@ impl Ray {
         }
     }
 
+    /// A ray whose inverse direction the caller worked out as [`Ray::new`] does (several
+    /// rays at a time, [`crate::camera::EyeRays::samples_in`]).
+    #[inline(always)]
+    pub(crate) fn with_inverse(origin: DVec3, dir: DVec3, inv_dir: DVec3) -> Self {
+        debug_assert_eq!(Ray::new(origin, dir).inv_dir, inv_dir);
+        Self {
+            origin,
+            dir,
+            inv_dir,
+            time: 0.0,
+        }
+    }
+
     /// The same ray at another time.
     #[inline(always)]
     pub fn at_time(self, time: f64) -> Self {
