@@ -18,7 +18,8 @@
 //! - [`camera`]: where each pixel sample's eye ray is born;
 //! - [`render`]: tiles and whole images in parallel, and the sample ranges of progressive
 //!   passes whose decisions [`adaptive`] makes; (feature `bench`) `bench`;
-//!   (feature `cli-args`) `cli_args`, the render flags both command lines share.
+//!   (feature `cli-args`) `cli_args`, the render flags both command lines share;
+//! - [`cpu`]: the instruction set the binaries are built for, checked before `main`.
 
 pub mod accel;
 pub mod adaptive;
@@ -28,6 +29,7 @@ pub mod camera;
 #[cfg(feature = "cli-args")]
 pub mod cli_args;
 pub mod convergence;
+pub mod cpu;
 pub mod film;
 pub mod geometry;
 pub mod metrics;
