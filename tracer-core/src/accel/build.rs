@@ -375,6 +375,26 @@ impl Box4 {
     }
 
     /// `self` grown by `b`. A NaN in `b` leaves `self` as it was (as `f64::min` did).
+    ///
+    /// In SSE: the portable form's selects write back lanes only where they change, and the
+    /// compiler made them masked stores (`vmaskmovps`) once AVX was in the build, microcoded
+    /// on AMD: binning took 4.6 times as long. `minps(b, a)` is `b < a ? b : a`, lane for
+    /// lane the same selects.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn grow(&mut self, b: &Box4) {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE is part of the x86_64 baseline; a Box4's halves are 16-byte aligned
+        // (the struct is 32-byte aligned, `hi` at offset 16).
+        unsafe {
+            let lo = _mm_min_ps(_mm_load_ps(b.lo.as_ptr()), _mm_load_ps(self.lo.as_ptr()));
+            let hi = _mm_max_ps(_mm_load_ps(b.hi.as_ptr()), _mm_load_ps(self.hi.as_ptr()));
+            _mm_store_ps(self.lo.as_mut_ptr(), lo);
+            _mm_store_ps(self.hi.as_mut_ptr(), hi);
+        }
+    }
+
+    #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
     fn grow(&mut self, b: &Box4) {
         for k in 0..4 {
