@@ -142,6 +142,20 @@ impl<'a> Tracer<'a> {
         (color, self.counts)
     }
 
+    /// What [`Tracer::sample`] returns for an eye ray that meets nothing, where that does not
+    /// depend on the ray (no environment map): the background through the camera's medium,
+    /// and the one radiance ray it counts. None where a miss sees a direction's texel.
+    pub fn uniform_miss(&mut self) -> Option<(DVec3, RayCounts)> {
+        if self.stage.environment.is_some() {
+            return None;
+        }
+        // Any ray: with the hit already given as none, neither its direction nor the random
+        // stream is read (the glossy stream is left as it is).
+        let ray = Ray::new(DVec3::ZERO, DVec3::Z);
+        let mut rng = Rng::from_state(0);
+        Some(self.sample(&ray, 0.0, f64::INFINITY, &mut rng, None, Eye::Found(None)))
+    }
+
     /// Colour seen along `ray` (unit direction) at recursion `level` (the eye ray is level 0;
     /// a ray at level max_depth contributes black). `eye`: how the eye ray's hit is found
     /// (see [`Tracer::sample`]), [`Eye::Walk`] past level 0.
