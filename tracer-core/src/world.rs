@@ -582,7 +582,17 @@ impl World {
             }
             Object::Triangle(i) => !behind_one(&self.triangles[i as usize].positions),
             Object::ModelTriangle(i) => !behind_one(&self.model_triangles[i as usize].corners),
-            Object::Model(_) | Object::Mover(_) => true,
+            Object::Model(i) => {
+                // In the model's space the planes keep passing through the (mapped) apex,
+                // with normals Mᵀn: n·(M·p + c − o) = (Mᵀn)·(p − M⁻¹(o − c)).
+                let model = &self.models[i as usize];
+                let m = model.transform.to_world.matrix3.transpose();
+                let apex = model.transform.to_local.transform_point3(origin);
+                let local = planes.map(|n| m * n);
+                let mesh = &self.meshes[model.mesh as usize];
+                !mesh.bvh.nodes.is_empty() && mesh_meets_frustum(mesh, 0, apex, &local)
+            }
+            Object::Mover(_) => true,
         }
     }
 
@@ -1062,6 +1072,40 @@ impl World {
     }
 }
 
+/// Whether some triangle below node `index` of `mesh`'s BVH may lie inside the frustum of
+/// `planes` (inward normals, through `apex`): a box or triangle wholly behind one plane is
+/// left out. Stops at the first triangle that is not.
+fn mesh_meets_frustum(mesh: &Mesh, index: usize, apex: DVec3, planes: &[DVec3; 4]) -> bool {
+    let node = &mesh.bvh.nodes[index];
+    let b = &node.bounds;
+    (0..node.index.len()).any(|c| {
+        if node.index[c] == u32::MAX {
+            return false;
+        }
+        let min = DVec3::new(b[0][c] as f64, b[2][c] as f64, b[4][c] as f64) - apex;
+        let max = DVec3::new(b[1][c] as f64, b[3][c] as f64, b[5][c] as f64) - apex;
+        // Behind a plane when even the box corner farthest along its normal is.
+        let box_behind = planes.iter().any(|n| {
+            let far = DVec3::select(n.cmpge(DVec3::ZERO), max, min);
+            n.dot(far) < 0.0
+        });
+        if box_behind {
+            return false;
+        }
+        let first = node.index[c] as usize;
+        match node.count[c] {
+            0 => mesh_meets_frustum(mesh, first, apex, planes),
+            count => mesh.corners[first..first + count as usize]
+                .iter()
+                .any(|corners| {
+                    !planes
+                        .iter()
+                        .any(|n| corners.iter().all(|&v| n.dot(v - apex) < 0.0))
+                }),
+        }
+    })
+}
+
 /// The bound to test an object or triangle against when the nearest hit so far (if
 /// `found`) lies at `t_max`: just above it, so that a hit at the same distance is seen and
 /// the tie can go to the lower slot whatever order the tests come in (closest-hit walks of
@@ -1521,6 +1565,53 @@ mod tests {
             f64::INFINITY,
             4.0 / 3.0,
         )
+    }
+
+    #[test]
+    fn a_pixels_frustum_keeps_a_model_only_where_its_triangles_may_meet_it() {
+        // Tilted, bumpy grid models (boxes with much empty space) near the origin and far
+        // from it at a small scale.
+        let mut next = crate::test_rng::uniform(11);
+        for (scale, offset) in [(1.0, DVec3::ZERO), (1e-3, DVec3::new(3e3, -2e3, 1e3))] {
+            let world = packet_world(scale, offset);
+            let camera = test_camera(offset);
+            let (w, h) = (64u32, 48u32);
+            let mut slots = Vec::new();
+            let (mut kept, mut boxes_met, mut hits) = (0, 0, 0);
+            for y in 0..h {
+                for x in 0..w {
+                    let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
+                    let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
+                    world.frustum_slots(camera.position, &planes, &mut slots);
+                    kept += slots.len();
+                    world
+                        .top_level
+                        .frustum(camera.position, &planes, &mut |r| boxes_met += r.len());
+                    for k in 0..12 {
+                        let (jx, jy) = match k {
+                            0 => (0.0, 0.0),
+                            1 => (1.0, 1.0),
+                            2 => (0.0, 1.0),
+                            3 => (1.0, 0.0),
+                            _ => (next(), next()),
+                        };
+                        let ray = camera.ray(x as f64 + jx, y as f64 + jy, w as f64, h as f64);
+                        let full = world.intersect(&ray, 0.0, f64::INFINITY);
+                        let among = world.intersect_among(&ray, 0.0, f64::INFINITY, &slots);
+                        assert!(
+                            same_hit(full, among),
+                            "scale {scale}: pixel ({x}, {y}), sample {k}: {full:?} {among:?}"
+                        );
+                        hits += full.is_some() as u32;
+                    }
+                }
+            }
+            assert!(hits > 5_000, "scale {scale}: {hits} hits");
+            assert!(
+                kept * 10 < boxes_met * 9,
+                "scale {scale}: {kept} slots kept of {boxes_met} boxes met"
+            );
+        }
     }
 
     #[test]
