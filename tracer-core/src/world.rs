@@ -561,11 +561,7 @@ impl World {
     /// pixel left with no slot needs no eye ray at all. The frustum is a twentieth of a pixel
     /// wider than its rays, far beyond the rounding of these tests.
     fn may_meet_frustum(&self, slot: usize, origin: DVec3, planes: &[DVec3; 4]) -> bool {
-        let behind_one = |corners: &[DVec3; 3]| {
-            planes
-                .iter()
-                .any(|n| corners.iter().all(|&v| n.dot(v - origin) < 0.0))
-        };
+        let behind_one = |corners| triangle_behind_a_plane(corners, origin, planes);
         match self.objects[slot] {
             Object::Sphere(i) | Object::TranslatedSphere(i) => {
                 // The world ellipsoid is M·p + c for |p| ≤ r: along a plane's normal n it
@@ -1077,19 +1073,8 @@ impl World {
 /// left out. Stops at the first triangle that is not.
 fn mesh_meets_frustum(mesh: &Mesh, index: usize, apex: DVec3, planes: &[DVec3; 4]) -> bool {
     let node = &mesh.bvh.nodes[index];
-    let b = &node.bounds;
     (0..node.index.len()).any(|c| {
-        if node.index[c] == u32::MAX {
-            return false;
-        }
-        let min = DVec3::new(b[0][c] as f64, b[2][c] as f64, b[4][c] as f64) - apex;
-        let max = DVec3::new(b[1][c] as f64, b[3][c] as f64, b[5][c] as f64) - apex;
-        // Behind a plane when even the box corner farthest along its normal is.
-        let box_behind = planes.iter().any(|n| {
-            let far = DVec3::select(n.cmpge(DVec3::ZERO), max, min);
-            n.dot(far) < 0.0
-        });
-        if box_behind {
+        if node.index[c] == u32::MAX || box_behind_a_plane(&node.bounds, c, apex, planes) {
             return false;
         }
         let first = node.index[c] as usize;
@@ -1097,13 +1082,35 @@ fn mesh_meets_frustum(mesh: &Mesh, index: usize, apex: DVec3, planes: &[DVec3; 4
             0 => mesh_meets_frustum(mesh, first, apex, planes),
             count => mesh.corners[first..first + count as usize]
                 .iter()
-                .any(|corners| {
-                    !planes
-                        .iter()
-                        .any(|n| corners.iter().all(|&v| n.dot(v - apex) < 0.0))
-                }),
+                .any(|corners| !triangle_behind_a_plane(corners, apex, planes)),
         }
     })
+}
+
+/// Whether child `c`'s box in a node's `bounds` (rows: min x, max x, min y, …, f32) lies
+/// wholly behind one of the planes through `apex` with inward normals `planes`: even its
+/// corner farthest along the normal is behind.
+fn box_behind_a_plane<const N: usize>(
+    bounds: &[[f32; N]; 6],
+    c: usize,
+    apex: DVec3,
+    planes: &[DVec3; 4],
+) -> bool {
+    let b = bounds;
+    let min = DVec3::new(b[0][c] as f64, b[2][c] as f64, b[4][c] as f64) - apex;
+    let max = DVec3::new(b[1][c] as f64, b[3][c] as f64, b[5][c] as f64) - apex;
+    planes.iter().any(|n| {
+        let far = DVec3::select(n.cmpge(DVec3::ZERO), max, min);
+        n.dot(far) < 0.0
+    })
+}
+
+/// Whether the triangle with `corners` lies wholly behind one of the planes through `apex`
+/// with inward normals `planes`.
+fn triangle_behind_a_plane(corners: &[DVec3; 3], apex: DVec3, planes: &[DVec3; 4]) -> bool {
+    planes
+        .iter()
+        .any(|n| corners.iter().all(|&v| n.dot(v - apex) < 0.0))
 }
 
 /// The bound to test an object or triangle against when the nearest hit so far (if
@@ -1383,42 +1390,14 @@ mod tests {
             100.0,
             4.0 / 3.0,
         );
-        let mut slots = Vec::new();
-        let (mut hits, mut culled, mut boxes_met) = (0, 0, 0);
-        for y in 0..h {
-            for x in 0..w {
-                let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
-                let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
-                world.frustum_slots(camera.position, &planes, &mut slots);
-                culled += world.objects.len() - slots.len();
-                world
-                    .top_level
-                    .frustum(camera.position, &planes, &mut |r| boxes_met += r.len());
-                // The pixel's corners and edges, and random points inside it.
-                for k in 0..12 {
-                    let (jx, jy) = match k {
-                        0 => (0.0, 0.0),
-                        1 => (1.0, 1.0),
-                        2 => (0.0, 1.0),
-                        3 => (1.0, 0.0),
-                        _ => (next(), next()),
-                    };
-                    let ray = camera.ray(x as f64 + jx, y as f64 + jy, w as f64, h as f64);
-                    let full = world.intersect(&ray, 0.01, 100.0).map(|h| (h.t, h.object));
-                    let among = world
-                        .intersect_among(&ray, 0.01, 100.0, &slots)
-                        .map(|h| (h.t, h.object));
-                    assert_eq!(full, among, "pixel ({x}, {y}), sample {k}");
-                    hits += full.is_some() as u32;
-                }
-            }
-        }
+        let (hits, kept, boxes_met) =
+            check_frustum_slots(&world, &camera, (w, h), (0.01, 100.0), &mut next);
+        let culled = (w * h) as usize * world.objects.len() - kept;
         assert!(hits > 1000, "{hits} hits");
         // The candidates are few: most objects lie outside a pixel's frustum.
         assert!(culled > (w * h) as usize * 60, "{culled} culled");
         // And fewer than the boxes the frustums meet: the ellipsoids' and triangles' own
         // tests leave out at least a fifth of those.
-        let kept = (w * h) as usize * world.objects.len() - culled;
         assert!(
             kept * 5 < boxes_met * 4,
             "{kept} slots kept of {boxes_met} boxes met"
@@ -1499,6 +1478,50 @@ mod tests {
         Mesh::new(&positions, normals, tex_coords, &triangles)
     }
 
+    /// For every pixel of a `size` image of `camera`: the pixel's frustum slots (its frustum
+    /// a twentieth of a pixel wider each way, as the renderer's), checked to give its eye rays
+    /// through the pixel's corners and random points the same hits in (near, far) as the
+    /// full walk. Returns the hits, the slots kept and the top-level boxes the frustums met.
+    fn check_frustum_slots(
+        world: &World,
+        camera: &crate::camera::Camera,
+        (w, h): (u32, u32),
+        (near, far): (f64, f64),
+        next: &mut impl FnMut() -> f64,
+    ) -> (u32, usize, usize) {
+        let mut slots = Vec::new();
+        let (mut hits, mut kept, mut boxes_met) = (0, 0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
+                let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
+                world.frustum_slots(camera.position, &planes, &mut slots);
+                kept += slots.len();
+                world
+                    .top_level
+                    .frustum(camera.position, &planes, &mut |r| boxes_met += r.len());
+                for k in 0..12 {
+                    let (jx, jy) = match k {
+                        0 => (0.0, 0.0),
+                        1 => (1.0, 1.0),
+                        2 => (0.0, 1.0),
+                        3 => (1.0, 0.0),
+                        _ => (next(), next()),
+                    };
+                    let ray = camera.ray(x as f64 + jx, y as f64 + jy, w as f64, h as f64);
+                    let full = world.intersect(&ray, near, far);
+                    let among = world.intersect_among(&ray, near, far, &slots);
+                    assert!(
+                        same_hit(full, among),
+                        "pixel ({x}, {y}), sample {k}: {full:?} against {among:?}"
+                    );
+                    hits += full.is_some() as u32;
+                }
+            }
+        }
+        (hits, kept, boxes_met)
+    }
+
     fn same_hit(a: Option<Hit>, b: Option<Hit>) -> bool {
         match (a, b) {
             (None, None) => true,
@@ -1575,37 +1598,8 @@ mod tests {
         for (scale, offset) in [(1.0, DVec3::ZERO), (1e-3, DVec3::new(3e3, -2e3, 1e3))] {
             let world = packet_world(scale, offset);
             let camera = test_camera(offset);
-            let (w, h) = (64u32, 48u32);
-            let mut slots = Vec::new();
-            let (mut kept, mut boxes_met, mut hits) = (0, 0, 0);
-            for y in 0..h {
-                for x in 0..w {
-                    let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
-                    let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
-                    world.frustum_slots(camera.position, &planes, &mut slots);
-                    kept += slots.len();
-                    world
-                        .top_level
-                        .frustum(camera.position, &planes, &mut |r| boxes_met += r.len());
-                    for k in 0..12 {
-                        let (jx, jy) = match k {
-                            0 => (0.0, 0.0),
-                            1 => (1.0, 1.0),
-                            2 => (0.0, 1.0),
-                            3 => (1.0, 0.0),
-                            _ => (next(), next()),
-                        };
-                        let ray = camera.ray(x as f64 + jx, y as f64 + jy, w as f64, h as f64);
-                        let full = world.intersect(&ray, 0.0, f64::INFINITY);
-                        let among = world.intersect_among(&ray, 0.0, f64::INFINITY, &slots);
-                        assert!(
-                            same_hit(full, among),
-                            "scale {scale}: pixel ({x}, {y}), sample {k}: {full:?} {among:?}"
-                        );
-                        hits += full.is_some() as u32;
-                    }
-                }
-            }
+            let (hits, kept, boxes_met) =
+                check_frustum_slots(&world, &camera, (64, 48), (0.0, f64::INFINITY), &mut next);
             assert!(hits > 5_000, "scale {scale}: {hits} hits");
             assert!(
                 kept * 10 < boxes_met * 9,

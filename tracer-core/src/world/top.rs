@@ -170,15 +170,7 @@ impl TopLevel {
             if node.index[c] == u32::MAX {
                 continue;
             }
-            let b = &node.bounds;
-            let min = glam::DVec3::new(b[0][c] as f64, b[2][c] as f64, b[4][c] as f64) - origin;
-            let max = glam::DVec3::new(b[1][c] as f64, b[3][c] as f64, b[5][c] as f64) - origin;
-            // Outside a plane when even the box corner farthest along its normal is behind it.
-            let outside = planes.iter().any(|n| {
-                let far = glam::DVec3::select(n.cmpge(glam::DVec3::ZERO), max, min);
-                n.dot(far) < 0.0
-            });
-            if outside {
+            if super::box_behind_a_plane(&node.bounds, c, origin, planes) {
                 continue;
             }
             let first = node.index[c] as usize;
