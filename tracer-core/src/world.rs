@@ -290,6 +290,21 @@ struct ModelTriangle {
     prim: u32,
 }
 
+/// The flat surface a spawned ray leaves: the axis-aligned plane of the triangle it starts on,
+/// whose triangles it cannot meet (it starts nudged off the plane to the side it heads for).
+/// Those are skipped without a test: a floor's or a wall's own triangles, which every
+/// shadow and mirror ray leaving it would otherwise test and miss.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Leaving(u32);
+
+impl Leaving {
+    /// A ray that leaves no such plane (an eye ray, or one leaving a sphere or a mesh).
+    pub const NOTHING: Leaving = Leaving(u32::MAX - 1);
+}
+
+/// [`World::slot_plane`] of a slot on no axis-aligned plane; never equal to a [`Leaving`].
+const NO_PLANE: u32 = u32::MAX;
+
 /// What [`World::occluded_by`] remembers of a family of shadow rays: the object that blocked
 /// the last one, if it was blocked.
 #[derive(Clone, Debug, Default)]
@@ -382,6 +397,9 @@ pub struct World {
     top: Bvh,
     /// `top`'s nodes in the layout of the top level's own traversal.
     top_level: TopLevel,
+    /// Per top-level slot, the axis-aligned plane its triangle lies in (an index shared by
+    /// every triangle on that plane; see [`Leaving`]), or [`NO_PLANE`].
+    slot_plane: Vec<u32>,
     /// Whether rays test every object in turn rather than walk `top`: a single object, or a
     /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
@@ -450,6 +468,7 @@ impl World {
         }
         let top = Bvh::build(&bounds);
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
+        let slot_plane = axis_planes(&objects, &triangles, &model_triangles);
         let top_level = TopLevel::new(&top);
         let linear_top = objects.len() == 1
             || objects.len() <= LINEAR_TOP
@@ -467,6 +486,7 @@ impl World {
             model_triangles,
             top,
             top_level,
+            slot_plane,
             linear_top,
         }
     }
@@ -524,12 +544,27 @@ impl World {
 
     /// The nearest hit with t in (t_min, t_max); `ray.dir` need not be unit length.
     pub fn intersect(&self, ray: &Ray, t_min: f64, t_max: f64) -> Option<Hit> {
+        self.intersect_leaving(ray, t_min, t_max, Leaving::NOTHING)
+    }
+
+    /// [`World::intersect`] for a ray spawned off a surface that `leaving` names (see
+    /// [`World::leaving`]): the same hit, without testing the triangles it cannot meet.
+    pub fn intersect_leaving(
+        &self,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+        leaving: Leaving,
+    ) -> Option<Hit> {
         // Set up on the first scene triangle only: rays that meet none (every ray of a
         // mesh-only scene) skip its divisions.
         let mut world_tri_ray = None;
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
         self.traverse_top::<false>(ray, &mut t_max, |slot, t_max| {
+            if self.slot_plane[slot] == leaving.0 {
+                return false;
+            }
             let bound = tie_bound(best.is_some(), *t_max);
             if let Some(h) = self.hit_object::<false>(slot, ray, t_min, bound, &mut world_tri_ray) {
                 keep_nearer(&mut best, t_max, slot, h);
@@ -869,14 +904,26 @@ impl World {
     /// the same object blocks most of their rays, and the walk is skipped. Lit rays forget
     /// it, so rays in the open pay nothing. The answer is the same either way (a blocker is
     /// a blocker, whichever is found).
-    pub fn occluded_by(&self, ray: &Ray, t_max: f64, cache: &mut ShadowCache) -> bool {
+    pub fn occluded_by(
+        &self,
+        ray: &Ray,
+        t_max: f64,
+        cache: &mut ShadowCache,
+        leaving: Leaving,
+    ) -> bool {
         if self.objects.len() == 1 {
+            if self.slot_plane[0] == leaving.0 {
+                return false;
+            }
             // The walk tests the one object directly: a remembered blocker would only test
             // it twice where it does not block (dragon.scene's mesh: a traversal each).
             return self.occluded(ray, t_max);
         }
         let mut world_tri_ray = None;
-        if let Some(slot) = cache.last {
+        if let Some(slot) = cache
+            .last
+            .filter(|&slot| self.slot_plane[slot as usize] != leaving.0)
+        {
             if self
                 .hit_object::<true>(slot as usize, ray, 0.0, t_max, &mut world_tri_ray)
                 .is_some()
@@ -887,6 +934,9 @@ impl World {
         let mut t_limit = t_max;
         let mut blocker = None;
         let found = self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
+            if self.slot_plane[slot] == leaving.0 {
+                return false;
+            }
             let hit = self
                 .hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
                 .is_some();
@@ -1023,6 +1073,15 @@ impl World {
     }
 
     /// Position, normals, texture coordinates and material at `hit`.
+    /// What a ray spawned off the surface at `hit` leaves (see [`Leaving`]).
+    #[inline]
+    pub fn leaving(&self, hit: &Hit) -> Leaving {
+        match self.slot_plane[hit.object as usize] {
+            NO_PLANE => Leaving::NOTHING,
+            plane => Leaving(plane),
+        }
+    }
+
     pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch<'_> {
         let position = ray.at(hit.t);
         match self.objects[hit.object as usize] {
@@ -1066,6 +1125,39 @@ impl World {
             }
         }
     }
+}
+
+/// Per top-level slot, the index of the axis-aligned plane its triangle lies in (all three
+/// corners share one coordinate exactly), shared by every slot on the same plane; otherwise
+/// [`NO_PLANE`].
+fn axis_planes(
+    objects: &[Object],
+    triangles: &[WorldTriangle],
+    model_triangles: &[ModelTriangle],
+) -> Vec<u32> {
+    let mut planes = std::collections::HashMap::new();
+    let mut plane_of = |corners: &[DVec3; 3]| {
+        let axis = (0..3).find(|&k| {
+            corners[0][k].is_finite()
+                && corners[0][k] == corners[1][k]
+                && corners[0][k] == corners[2][k]
+        })?;
+        // +0 and −0 are one plane.
+        let value = corners[0][axis] + 0.0;
+        let next = planes.len() as u32;
+        Some(*planes.entry((axis, value.to_bits())).or_insert(next))
+    };
+    objects
+        .iter()
+        .map(|object| {
+            let plane = match *object {
+                Object::Triangle(i) => plane_of(&triangles[i as usize].positions),
+                Object::ModelTriangle(i) => plane_of(&model_triangles[i as usize].corners),
+                _ => None,
+            };
+            plane.unwrap_or(NO_PLANE)
+        })
+        .collect()
 }
 
 /// Whether some triangle below node `index` of `mesh`'s BVH may lie inside the frustum of
@@ -1447,13 +1539,173 @@ mod tests {
             // Some rays stop short of their blocker.
             let t_max = to.length() * if i % 3 == 0 { 0.3 } else { 1.0 };
             let had = cache.last.is_some();
-            let by = world.occluded_by(&ray, t_max, &mut cache);
+            let by = world.occluded_by(&ray, t_max, &mut cache, Leaving::NOTHING);
             assert_eq!(by, world.occluded(&ray, t_max), "ray {i}");
             blocked += by as u32;
             remembered += (had && by) as u32;
         }
         assert!(blocked > 400 && blocked < 3600, "{blocked} blocked");
         assert!(remembered > 200, "{remembered} blocked after a blocked ray");
+    }
+
+    #[test]
+    fn rays_leaving_a_plane_skip_its_triangles_and_find_the_same_hits() {
+        // A room: a floor of 72 triangles on y = 0, an underlay on y = −1e-7 just below part
+        // of it (a parallel plane: rays leaving the floor downward must still hit it), walls,
+        // a ceiling, and spheres and tilted triangles in between.
+        let mut next = crate::test_rng::uniform(29);
+        let flat = |a: DVec3, b: DVec3, c: DVec3| WorldTriangle {
+            positions: [a, b, c],
+            normals: [(b - a).cross(c - a).normalize(); 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let mut triangles = Vec::new();
+        let quad = |triangles: &mut Vec<WorldTriangle>, o: DVec3, u: DVec3, v: DVec3| {
+            triangles.push(flat(o, o + u, o + u + v));
+            triangles.push(flat(o, o + u + v, o + v));
+        };
+        for j in 0..6 {
+            for i in 0..6 {
+                let o = DVec3::new(i as f64 - 3.0, 0.0, j as f64 - 3.0);
+                quad(&mut triangles, o, DVec3::Z, DVec3::X);
+            }
+        }
+        quad(
+            &mut triangles,
+            DVec3::new(-1.0, 1e-7, -1.0),
+            DVec3::Z * 2.0,
+            DVec3::X * 2.0,
+        );
+        quad(
+            &mut triangles,
+            DVec3::new(-3.0, 5.0, -3.0),
+            DVec3::X * 6.0,
+            DVec3::Z * 6.0,
+        );
+        quad(
+            &mut triangles,
+            DVec3::new(-3.0, 0.0, -3.0),
+            DVec3::Y * 5.0,
+            DVec3::Z * 6.0,
+        );
+        quad(
+            &mut triangles,
+            DVec3::new(3.0, 0.0, -3.0),
+            DVec3::Z * 6.0,
+            DVec3::Y * 5.0,
+        );
+        for _ in 0..10 {
+            let c = DVec3::new(next() * 5.0 - 2.5, next() * 4.0 + 0.5, next() * 5.0 - 2.5);
+            let mut corner = || c + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+            triangles.push(flat(corner(), corner(), corner()));
+        }
+        let spheres = (0..6)
+            .map(|i| Sphere {
+                transform: Transform::new(
+                    DVec3::new(next() * 5.0 - 2.5, next() * 3.0 + 0.5, next() * 5.0 - 2.5),
+                    glam::DQuat::IDENTITY,
+                    DVec3::ONE,
+                ),
+                radius: 0.2 + next() * 0.4,
+                material: i,
+            })
+            .collect();
+        let world = World::with_movers(spheres, triangles, vec![], vec![], vec![], (0.0, 0.0));
+        let same = |a: Option<Hit>, b: Option<Hit>| {
+            a.map(|h| (h.t.to_bits(), h.object, h.prim))
+                == b.map(|h| (h.t.to_bits(), h.object, h.prim))
+        };
+        let direction = |next: &mut dyn FnMut() -> f64| {
+            let d = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+            if d.length() > 1e-3 {
+                d.normalize()
+            } else {
+                DVec3::Y
+            }
+        };
+        let (mut leaving_planes, mut underlay_from_floor, mut blocked) = (0, 0, 0);
+        let plane_met = |from: DVec3, dir: DVec3| {
+            world.leaving(
+                &world
+                    .intersect(&Ray::new(from, dir), 0.0, f64::INFINITY)
+                    .unwrap(),
+            )
+        };
+        let floor = plane_met(DVec3::new(0.1, 1.0, 0.2), -DVec3::Y);
+        let underlay = plane_met(DVec3::new(0.1, -1.0, 0.2), DVec3::Y);
+        assert_ne!(floor, underlay);
+        for i in 0..6000 {
+            let eye = Ray::new(DVec3::new(0.3, 2.5, 0.7), direction(&mut next));
+            let Some(hit) = world.intersect(&eye, 0.0, f64::INFINITY) else {
+                continue;
+            };
+            let leaving = world.leaving(&hit);
+            if leaving == Leaving::NOTHING {
+                continue;
+            }
+            leaving_planes += 1;
+            // Spawned as shading spawns them: mirror-like and shadow rays off the surface.
+            let p = eye.at(hit.t);
+            let n = world.patch(&eye, &hit).geometric_normal;
+            let error_scale = p.abs().max_element() + hit.t;
+            let spawned = crate::shade::spawn_ray(p, n, direction(&mut next), error_scale, 0.0);
+            let walked = world.intersect(&spawned, 0.0, f64::INFINITY);
+            let skipping = world.intersect_leaving(&spawned, 0.0, f64::INFINITY, leaving);
+            assert!(
+                same(walked, skipping),
+                "ray {i}: {walked:?} against {skipping:?}"
+            );
+            underlay_from_floor += (leaving == floor
+                && skipping.is_some_and(|h| world.leaving(&h) == underlay))
+                as u32;
+            let light = DVec3::new(next() * 4.0 - 2.0, 4.5, next() * 4.0 - 2.0);
+            let to = light - p;
+            let shadow = crate::shade::spawn_ray(p, n, to.normalize(), error_scale, 0.0);
+            let by = world.occluded_by(&shadow, to.length(), &mut ShadowCache::default(), leaving);
+            assert_eq!(by, world.occluded(&shadow, to.length()), "shadow ray {i}");
+            blocked += by as u32;
+        }
+        assert!(leaving_planes > 3000, "{leaving_planes} rays left a plane");
+        assert!(
+            underlay_from_floor > 20,
+            "{underlay_from_floor} rays met the underlay from the floor"
+        );
+        assert!(blocked > 150, "{blocked} shadow rays blocked");
+    }
+
+    #[test]
+    fn a_ray_leaving_a_plane_meets_none_of_its_triangles() {
+        // Even one that starts below the floor heading up: what it leaves is the caller's word.
+        let floor = |x: f64| WorldTriangle {
+            positions: [
+                DVec3::new(x, 0.0, -1.0),
+                DVec3::new(x, 0.0, 1.0),
+                DVec3::new(x + 1.0, 0.0, 0.0),
+            ],
+            normals: [DVec3::Y; 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let world = World::with_movers(
+            vec![],
+            vec![floor(0.0), floor(5.0)],
+            vec![],
+            vec![],
+            vec![],
+            (0.0, 0.0),
+        );
+        let down = Ray::new(DVec3::new(5.2, 1.0, 0.0), -DVec3::Y);
+        let on_floor = world.intersect(&down, 0.0, f64::INFINITY).unwrap();
+        let leaving = world.leaving(&on_floor);
+        assert_ne!(leaving, Leaving::NOTHING);
+        let up = Ray::new(DVec3::new(0.2, -1.0, 0.0), DVec3::Y);
+        assert!(world.intersect(&up, 0.0, f64::INFINITY).is_some());
+        assert!(world
+            .intersect_leaving(&up, 0.0, f64::INFINITY, leaving)
+            .is_none());
+        assert!(world.occluded(&up, 5.0));
+        assert!(!world.occluded_by(&up, 5.0, &mut ShadowCache::default(), leaving));
     }
 
     /// A `n`×`n` grid of squares over [0, 1]² (two triangles each) at height `bump(x, y)`.

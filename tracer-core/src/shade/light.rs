@@ -6,7 +6,7 @@ use glam::DVec3;
 use super::material::Surface;
 use super::optics::spawn_ray;
 use crate::sampler::{uniform_sphere, Rng};
-use crate::world::{ShadowCache, World};
+use crate::world::{Leaving, ShadowCache, World};
 
 #[derive(Clone, Debug)]
 pub struct Light {
@@ -39,7 +39,7 @@ impl Light {
     /// This light's shadowed, attenuated diffuse term c·att·max(N·L, 0) at surface `s` with
     /// shading normal `n` (the caller multiplies by the material's diffuse colour), and
     /// whether a shadow ray was traced for it (at `time`). `shadow` serves this light's
-    /// shadow rays (see [`World::occluded_by`]).
+    /// shadow rays (see [`World::occluded_by`]); `leaving`: the surface's own plane, if any.
     #[allow(clippy::too_many_arguments)]
     pub fn direct(
         &self,
@@ -50,6 +50,7 @@ impl Light {
         time: f64,
         rng: &mut Rng,
         shadow: &mut ShadowCache,
+        leaving: Leaving,
     ) -> (DVec3, bool) {
         let p = s.position;
         let target = self.sample_point(rng);
@@ -65,7 +66,7 @@ impl Light {
         }
         let shadow_ray = spawn_ray(p, s.geometric_normal, l, error_scale, time);
         let shadow_length = (target - shadow_ray.origin).dot(l);
-        if world.occluded_by(&shadow_ray, shadow_length, shadow) {
+        if world.occluded_by(&shadow_ray, shadow_length, shadow, leaving) {
             return (DVec3::ZERO, true);
         }
         let attenuation = 1.0 / self.falloff(distance);

@@ -28,7 +28,7 @@ pub use optics::{glossy, reflect, refract, schlick, spawn_ray, toward_viewer, Cr
 use crate::geometry::Ray;
 use crate::sampler::Rng;
 use crate::texture::Environment;
-use crate::world::{Hit, ShadowCache, World};
+use crate::world::{Hit, Leaving, ShadowCache, World};
 
 /// Radiance rays one pixel sample may trace at most. Dielectrics branch in two at every level,
 /// so a deep limit could otherwise ask for 2^depth rays; the course's depth 5 needs at most 31.
@@ -138,7 +138,7 @@ impl<'a> Tracer<'a> {
         }
         self.counts = RayCounts::default();
         let outer = std::rc::Rc::clone(&self.outer);
-        let color = self.radiance(ray, near, far, 0, &outer, rng, eye);
+        let color = self.radiance(ray, near, far, 0, &outer, rng, eye, Leaving::NOTHING);
         (color, self.counts)
     }
 
@@ -169,9 +169,10 @@ impl<'a> Tracer<'a> {
         media: &MediumStack,
         rng: &mut Rng,
         eye: Eye,
+        leaving: Leaving,
     ) -> DVec3 {
         let absorption = media.absorption();
-        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng, eye);
+        let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng, eye, leaving);
         if absorption == DVec3::ZERO {
             return color;
         }
@@ -192,6 +193,7 @@ impl<'a> Tracer<'a> {
         media: &MediumStack,
         rng: &mut Rng,
         eye: Eye,
+        leaving: Leaving,
     ) -> (DVec3, f64) {
         if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
             return (DVec3::ZERO, 0.0);
@@ -199,7 +201,7 @@ impl<'a> Tracer<'a> {
         self.counts.radiance += 1;
         let world = self.stage.world;
         let hit = match eye {
-            Eye::Walk => world.intersect(ray, t_min, t_max),
+            Eye::Walk => world.intersect_leaving(ray, t_min, t_max, leaving),
             Eye::Among(slots) => world.intersect_among(ray, t_min, t_max, slots),
             Eye::Found(hit) => hit,
         };
@@ -219,6 +221,8 @@ impl<'a> Tracer<'a> {
     ) -> DVec3 {
         let stage = self.stage;
         let s = stage.surface(ray, hit);
+        // Every ray spawned here leaves this surface.
+        let leaving = stage.world.leaving(hit);
         let error_scale = s.position.abs().max_element() + hit.t;
         let d = ray.dir;
 
@@ -229,8 +233,16 @@ impl<'a> Tracer<'a> {
             let shadow_level = (level as usize).min(SHADOW_LEVELS - 1);
             for (i, light) in stage.lights.iter().enumerate() {
                 let cache = &mut self.shadow[i * SHADOW_LEVELS + shadow_level];
-                let (light, traced) =
-                    light.direct(stage.world, &s, n, error_scale, ray.time, rng, cache);
+                let (light, traced) = light.direct(
+                    stage.world,
+                    &s,
+                    n,
+                    error_scale,
+                    ray.time,
+                    rng,
+                    cache,
+                    leaving,
+                );
                 self.counts.shadow += traced as u32;
                 direct += light * s.diffuse;
             }
@@ -252,6 +264,7 @@ impl<'a> Tracer<'a> {
                         media,
                         rng,
                         Eye::Walk,
+                        leaving,
                     );
             }
             return color;
@@ -279,6 +292,7 @@ impl<'a> Tracer<'a> {
                     media,
                     rng,
                     Eye::Walk,
+                    leaving,
                 );
         }
         if reflectance < 1.0 {
@@ -294,6 +308,7 @@ impl<'a> Tracer<'a> {
                         &crossing.beyond,
                         rng,
                         Eye::Walk,
+                        leaving,
                     );
             }
         }
