@@ -290,10 +290,11 @@ struct ModelTriangle {
     prim: u32,
 }
 
-/// The flat surface a spawned ray leaves: the axis-aligned plane of the triangle it starts on,
-/// whose triangles it cannot meet (it starts nudged off the plane to the side it heads for).
-/// Those are skipped without a test: a floor's or a wall's own triangles, which every
-/// shadow and mirror ray leaving it would otherwise test and miss.
+/// The flat surface a spawned ray leaves, whose triangles it cannot meet (it starts nudged off
+/// the plane to the side it heads for): every triangle on the plane where that is
+/// axis-aligned (coplanarity is then exact), else the triangle it starts on alone. Those are
+/// skipped without a test: a floor's or a wall's own triangles, which every shadow and
+/// mirror ray leaving it would otherwise test and miss.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Leaving(u32);
 
@@ -562,7 +563,7 @@ impl World {
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
         self.traverse_top::<false>(ray, &mut t_max, |slot, t_max| {
-            if self.slot_plane[slot] == leaving.0 {
+            if self.skips(slot, leaving) {
                 return false;
             }
             let bound = tie_bound(best.is_some(), *t_max);
@@ -912,7 +913,7 @@ impl World {
         leaving: Leaving,
     ) -> bool {
         if self.objects.len() == 1 {
-            if self.slot_plane[0] == leaving.0 {
+            if self.skips(0, leaving) {
                 return false;
             }
             // The walk tests the one object directly: a remembered blocker would only test
@@ -922,7 +923,7 @@ impl World {
         let mut world_tri_ray = None;
         if let Some(slot) = cache
             .last
-            .filter(|&slot| self.slot_plane[slot as usize] != leaving.0)
+            .filter(|&slot| !self.skips(slot as usize, leaving))
         {
             if self
                 .hit_object::<true>(slot as usize, ray, 0.0, t_max, &mut world_tri_ray)
@@ -934,7 +935,7 @@ impl World {
         let mut t_limit = t_max;
         let mut blocker = None;
         let found = self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
-            if self.slot_plane[slot] == leaving.0 {
+            if self.skips(slot, leaving) {
                 return false;
             }
             let hit = self
@@ -1073,6 +1074,13 @@ impl World {
     }
 
     /// Position, normals, texture coordinates and material at `hit`.
+    /// Whether a ray leaving `leaving` skips the object in top-level `slot` (one on that
+    /// plane). Rays leaving nothing, most of a scene without such planes, read nothing.
+    #[inline(always)]
+    fn skips(&self, slot: usize, leaving: Leaving) -> bool {
+        leaving != Leaving::NOTHING && self.slot_plane[slot] == leaving.0
+    }
+
     /// What a ray spawned off the surface at `hit` leaves (see [`Leaving`]).
     #[inline]
     pub fn leaving(&self, hit: &Hit) -> Leaving {
@@ -1128,8 +1136,8 @@ impl World {
 }
 
 /// Per top-level slot, the index of the axis-aligned plane its triangle lies in (all three
-/// corners share one coordinate exactly), shared by every slot on the same plane; otherwise
-/// [`NO_PLANE`].
+/// corners share one coordinate exactly), shared by every slot on the same plane; a fresh
+/// index for any other triangle; [`NO_PLANE`] for other objects.
 fn axis_planes(
     objects: &[Object],
     triangles: &[WorldTriangle],
@@ -1147,15 +1155,26 @@ fn axis_planes(
         let next = planes.len() as u32;
         Some(*planes.entry((axis, value.to_bits())).or_insert(next))
     };
-    objects
+    let slots: Vec<Option<Option<u32>>> = objects
         .iter()
-        .map(|object| {
-            let plane = match *object {
-                Object::Triangle(i) => plane_of(&triangles[i as usize].positions),
-                Object::ModelTriangle(i) => plane_of(&model_triangles[i as usize].corners),
-                _ => None,
-            };
-            plane.unwrap_or(NO_PLANE)
+        .map(|object| match *object {
+            Object::Triangle(i) => Some(plane_of(&triangles[i as usize].positions)),
+            Object::ModelTriangle(i) => Some(plane_of(&model_triangles[i as usize].corners)),
+            _ => None,
+        })
+        .collect();
+    // A triangle on no axis-aligned plane has a plane of its own: rays leaving it skip it
+    // alone (whether another triangle shares its plane exactly is not known).
+    let mut next = planes.len() as u32;
+    slots
+        .into_iter()
+        .map(|slot| match slot {
+            Some(Some(plane)) => plane,
+            Some(None) => {
+                next += 1;
+                next - 1
+            }
+            None => NO_PLANE,
         })
         .collect()
 }
