@@ -290,21 +290,25 @@ struct ModelTriangle {
     prim: u32,
 }
 
-/// The flat surface a spawned ray leaves, whose triangles it cannot meet (it starts nudged off
-/// the plane to the side it heads for): every triangle on the plane where that is
-/// axis-aligned (coplanarity is then exact), else the triangle it starts on alone. Those are
-/// skipped without a test: a floor's or a wall's own triangles, which every shadow and
-/// mirror ray leaving it would otherwise test and miss.
+/// The surface a spawned ray leaves, and with it the objects it cannot meet (it starts nudged
+/// off the surface to the side it heads for):
+/// - off a triangle on an axis-aligned plane, every triangle on that plane (coplanarity is
+///   then exact); off any other triangle, that triangle;
+/// - off a sphere (or ellipsoid) heading out of it, that sphere: it is convex.
+///
+/// Those are skipped without a test: a floor's or a wall's own triangles, or the sphere
+/// itself, which every shadow and mirror ray leaving it would otherwise test and miss.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Leaving(u32);
 
 impl Leaving {
-    /// A ray that leaves no such plane (an eye ray, or one leaving a sphere or a mesh).
+    /// A ray that leaves nothing it cannot meet again (an eye ray, a ray into a sphere, or
+    /// one leaving a mesh or a mover).
     pub const NOTHING: Leaving = Leaving(u32::MAX - 1);
 }
 
-/// [`World::slot_plane`] of a slot on no axis-aligned plane; never equal to a [`Leaving`].
-const NO_PLANE: u32 = u32::MAX;
+/// [`World::slot_surface`] of a slot no ray skips; never equal to a [`Leaving`].
+const NO_SURFACE: u32 = u32::MAX;
 
 /// What [`World::occluded_by`] remembers of a family of shadow rays: the object that blocked
 /// the last one, if it was blocked.
@@ -398,9 +402,10 @@ pub struct World {
     top: Bvh,
     /// `top`'s nodes in the layout of the top level's own traversal.
     top_level: TopLevel,
-    /// Per top-level slot, the axis-aligned plane its triangle lies in (an index shared by
-    /// every triangle on that plane; see [`Leaving`]), or [`NO_PLANE`].
-    slot_plane: Vec<u32>,
+    /// Per top-level slot, what a ray leaving it skips ([`Leaving`]): an index shared by
+    /// every triangle on one axis-aligned plane, the slot's own for another triangle or a
+    /// sphere, or [`NO_SURFACE`].
+    slot_surface: Vec<u32>,
     /// Whether rays test every object in turn rather than walk `top`: a single object, or a
     /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
@@ -469,7 +474,7 @@ impl World {
         }
         let top = Bvh::build(&bounds);
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
-        let slot_plane = axis_planes(&objects, &triangles, &model_triangles);
+        let slot_surface = surfaces(&objects, &triangles, &model_triangles);
         let top_level = TopLevel::new(&top);
         let linear_top = objects.len() == 1
             || objects.len() <= LINEAR_TOP
@@ -487,7 +492,7 @@ impl World {
             model_triangles,
             top,
             top_level,
-            slot_plane,
+            slot_surface,
             linear_top,
         }
     }
@@ -1073,23 +1078,34 @@ impl World {
         }
     }
 
-    /// Position, normals, texture coordinates and material at `hit`.
-    /// Whether a ray leaving `leaving` skips the object in top-level `slot` (one on that
-    /// plane). Rays leaving nothing, most of a scene without such planes, read nothing.
+    /// Whether a ray leaving `leaving` skips the object in top-level `slot`. Rays leaving
+    /// nothing (eye rays, and every ray of a mesh-only scene) read nothing.
     #[inline(always)]
     fn skips(&self, slot: usize, leaving: Leaving) -> bool {
-        leaving != Leaving::NOTHING && self.slot_plane[slot] == leaving.0
+        leaving != Leaving::NOTHING && self.slot_surface[slot] == leaving.0
     }
 
-    /// What a ray spawned off the surface at `hit` leaves (see [`Leaving`]).
+    /// What a ray spawned off the surface at `hit` leaves (see [`Leaving`]), `outward` where
+    /// it heads to the side the geometric normal points to (strictly).
     #[inline]
-    pub fn leaving(&self, hit: &Hit) -> Leaving {
-        match self.slot_plane[hit.object as usize] {
-            NO_PLANE => Leaving::NOTHING,
-            plane => Leaving(plane),
+    pub fn leaving(&self, hit: &Hit, outward: bool) -> Leaving {
+        let slot = hit.object as usize;
+        match self.slot_surface[slot] {
+            NO_SURFACE => Leaving::NOTHING,
+            // A ray into a sphere meets its far side.
+            _ if !outward
+                && matches!(
+                    self.objects[slot],
+                    Object::Sphere(_) | Object::TranslatedSphere(_)
+                ) =>
+            {
+                Leaving::NOTHING
+            }
+            surface => Leaving(surface),
         }
     }
 
+    /// Position, normals, texture coordinates and material at `hit`.
     pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch<'_> {
         let position = ray.at(hit.t);
         match self.objects[hit.object as usize] {
@@ -1135,10 +1151,11 @@ impl World {
     }
 }
 
-/// Per top-level slot, the index of the axis-aligned plane its triangle lies in (all three
-/// corners share one coordinate exactly), shared by every slot on the same plane; a fresh
-/// index for any other triangle; [`NO_PLANE`] for other objects.
-fn axis_planes(
+/// Per top-level slot, what a ray leaving it skips: the index of the axis-aligned plane its
+/// triangle lies in (all three corners share one coordinate exactly), shared by every slot on
+/// the same plane; a fresh index for any other triangle or a sphere; [`NO_SURFACE`] for
+/// other objects.
+fn surfaces(
     objects: &[Object],
     triangles: &[WorldTriangle],
     model_triangles: &[ModelTriangle],
@@ -1160,11 +1177,13 @@ fn axis_planes(
         .map(|object| match *object {
             Object::Triangle(i) => Some(plane_of(&triangles[i as usize].positions)),
             Object::ModelTriangle(i) => Some(plane_of(&model_triangles[i as usize].corners)),
+            Object::Sphere(_) | Object::TranslatedSphere(_) => Some(None),
             _ => None,
         })
         .collect();
-    // A triangle on no axis-aligned plane has a plane of its own: rays leaving it skip it
-    // alone (whether another triangle shares its plane exactly is not known).
+    // A triangle on no axis-aligned plane, or a sphere, is a surface of its own: rays
+    // leaving it skip it alone (whether another triangle shares a plane exactly is not
+    // known).
     let mut next = planes.len() as u32;
     slots
         .into_iter()
@@ -1174,7 +1193,7 @@ fn axis_planes(
                 next += 1;
                 next - 1
             }
-            None => NO_PLANE,
+            None => NO_SURFACE,
         })
         .collect()
 }
@@ -1568,7 +1587,7 @@ mod tests {
     }
 
     #[test]
-    fn rays_leaving_a_plane_skip_its_triangles_and_find_the_same_hits() {
+    fn rays_leaving_a_surface_skip_what_they_cannot_meet_and_find_the_same_hits() {
         // A room: a floor of 72 triangles on y = 0, an underlay on y = −1e-7 just below part
         // of it (a parallel plane: rays leaving the floor downward must still hit it), walls,
         // a ceiling, and spheres and tilted triangles in between.
@@ -1644,11 +1663,13 @@ mod tests {
             }
         };
         let (mut leaving_planes, mut underlay_from_floor, mut blocked) = (0, 0, 0);
+        let (mut out_of_spheres, mut into_spheres) = (0, 0);
         let plane_met = |from: DVec3, dir: DVec3| {
             world.leaving(
                 &world
                     .intersect(&Ray::new(from, dir), 0.0, f64::INFINITY)
                     .unwrap(),
+                true,
             )
         };
         let floor = plane_met(DVec3::new(0.1, 1.0, 0.2), -DVec3::Y);
@@ -1659,16 +1680,28 @@ mod tests {
             let Some(hit) = world.intersect(&eye, 0.0, f64::INFINITY) else {
                 continue;
             };
-            let leaving = world.leaving(&hit);
-            if leaving == Leaving::NOTHING {
-                continue;
-            }
-            leaving_planes += 1;
-            // Spawned as shading spawns them: mirror-like and shadow rays off the surface.
+            // Spawned as shading spawns them: mirror-like and shadow rays off the surface,
+            // to either side (rays into a sphere must still meet its far side).
             let p = eye.at(hit.t);
             let n = world.patch(&eye, &hit).geometric_normal;
             let error_scale = p.abs().max_element() + hit.t;
-            let spawned = crate::shade::spawn_ray(p, n, direction(&mut next), error_scale, 0.0);
+            let dir = direction(&mut next);
+            let leaving = world.leaving(&hit, dir.dot(n) > 0.0);
+            let sphere = world.slot_surface[hit.object as usize] != NO_SURFACE
+                && matches!(
+                    world.objects[hit.object as usize],
+                    Object::TranslatedSphere(_)
+                );
+            if sphere {
+                if leaving == Leaving::NOTHING {
+                    into_spheres += 1;
+                } else {
+                    out_of_spheres += 1;
+                }
+            } else if leaving != Leaving::NOTHING {
+                leaving_planes += 1;
+            }
+            let spawned = crate::shade::spawn_ray(p, n, dir, error_scale, 0.0);
             let walked = world.intersect(&spawned, 0.0, f64::INFINITY);
             let skipping = world.intersect_leaving(&spawned, 0.0, f64::INFINITY, leaving);
             assert!(
@@ -1676,16 +1709,21 @@ mod tests {
                 "ray {i}: {walked:?} against {skipping:?}"
             );
             underlay_from_floor += (leaving == floor
-                && skipping.is_some_and(|h| world.leaving(&h) == underlay))
+                && skipping.is_some_and(|h| world.leaving(&h, true) == underlay))
                 as u32;
             let light = DVec3::new(next() * 4.0 - 2.0, 4.5, next() * 4.0 - 2.0);
             let to = light - p;
             let shadow = crate::shade::spawn_ray(p, n, to.normalize(), error_scale, 0.0);
+            let leaving = world.leaving(&hit, to.dot(n) > 0.0);
             let by = world.occluded_by(&shadow, to.length(), &mut ShadowCache::default(), leaving);
             assert_eq!(by, world.occluded(&shadow, to.length()), "shadow ray {i}");
             blocked += by as u32;
         }
-        assert!(leaving_planes > 3000, "{leaving_planes} rays left a plane");
+        assert!(leaving_planes > 2000, "{leaving_planes} rays left a plane");
+        assert!(
+            out_of_spheres > 100 && into_spheres > 100,
+            "{out_of_spheres} rays out of spheres, {into_spheres} into them"
+        );
         assert!(
             underlay_from_floor > 20,
             "{underlay_from_floor} rays met the underlay from the floor"
@@ -1716,7 +1754,7 @@ mod tests {
         );
         let down = Ray::new(DVec3::new(5.2, 1.0, 0.0), -DVec3::Y);
         let on_floor = world.intersect(&down, 0.0, f64::INFINITY).unwrap();
-        let leaving = world.leaving(&on_floor);
+        let leaving = world.leaving(&on_floor, false);
         assert_ne!(leaving, Leaving::NOTHING);
         let up = Ray::new(DVec3::new(0.2, -1.0, 0.0), DVec3::Y);
         assert!(world.intersect(&up, 0.0, f64::INFINITY).is_some());

@@ -39,7 +39,8 @@ impl Light {
     /// This light's shadowed, attenuated diffuse term c·att·max(N·L, 0) at surface `s` with
     /// shading normal `n` (the caller multiplies by the material's diffuse colour), and
     /// whether a shadow ray was traced for it (at `time`). `shadow` serves this light's
-    /// shadow rays (see [`World::occluded_by`]); `leaving`: the surface's own plane, if any.
+    /// shadow rays (see [`World::occluded_by`]); `leaving`: what a ray leaves into the
+    /// surface and out of it (see [`World::leaving`]).
     #[allow(clippy::too_many_arguments)]
     pub fn direct(
         &self,
@@ -50,7 +51,7 @@ impl Light {
         time: f64,
         rng: &mut Rng,
         shadow: &mut ShadowCache,
-        leaving: Leaving,
+        leaving: [Leaving; 2],
     ) -> (DVec3, bool) {
         let p = s.position;
         let target = self.sample_point(rng);
@@ -66,6 +67,7 @@ impl Light {
         }
         let shadow_ray = spawn_ray(p, s.geometric_normal, l, error_scale, time);
         let shadow_length = (target - shadow_ray.origin).dot(l);
+        let leaving = leaving[(l.dot(s.geometric_normal) > 0.0) as usize];
         if world.occluded_by(&shadow_ray, shadow_length, shadow, leaving) {
             return (DVec3::ZERO, true);
         }

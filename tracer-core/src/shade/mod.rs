@@ -221,8 +221,9 @@ impl<'a> Tracer<'a> {
     ) -> DVec3 {
         let stage = self.stage;
         let s = stage.surface(ray, hit);
-        // Every ray spawned here leaves this surface.
-        let leaving = stage.world.leaving(hit);
+        // What a ray spawned here leaves, by the side it heads to: [into, out of] the surface.
+        let leaving = [false, true].map(|outward| stage.world.leaving(hit, outward));
+        let leaving_toward = |dir: DVec3| leaving[(dir.dot(s.geometric_normal) > 0.0) as usize];
         let error_scale = s.position.abs().max_element() + hit.t;
         let d = ray.dir;
 
@@ -264,7 +265,7 @@ impl<'a> Tracer<'a> {
                         media,
                         rng,
                         Eye::Walk,
-                        leaving,
+                        leaving_toward(dir),
                     );
             }
             return color;
@@ -292,7 +293,7 @@ impl<'a> Tracer<'a> {
                     media,
                     rng,
                     Eye::Walk,
-                    leaving,
+                    leaving_toward(dir),
                 );
         }
         if reflectance < 1.0 {
@@ -308,7 +309,7 @@ impl<'a> Tracer<'a> {
                         &crossing.beyond,
                         rng,
                         Eye::Walk,
-                        leaving,
+                        leaving_toward(dir),
                     );
             }
         }
