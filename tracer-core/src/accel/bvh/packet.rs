@@ -2,8 +2,8 @@
 //! together. Each interior node is tested once for the whole packet with interval bounds of
 //! the rays (every ray's origin and inverse direction lie in a box), so the upper levels cost
 //! one node test per packet instead of one per ray; only at a node with leaf children, where
-//! the packet's paths part, or where one ray is left does each ray take its own box test, the
-//! single-ray traversal's.
+//! the packet's paths part, or (in a large tree) where one ray is left does each ray take its
+//! own box test, the single-ray traversal's.
 //!
 //! The packet test is conservative: it culls a box only when no ray of the packet can enter
 //! it before the packet's farthest `t_max`, so every ray meets at least the leaves the
@@ -442,13 +442,16 @@ impl Bvh {
             packet_hit,
             |singles, i, node, t_max| Some(ray_hit(singles.get(rays, i), node, t_max[i])),
             |singles, node, leaves, inner, active, t_max, live| {
+                let single = singles.all(rays);
                 let mut split = [0u64; WIDTH];
                 let mut reach = 0;
                 let mut a = active;
                 while a != 0 {
                     let i = a.trailing_zeros() as usize;
                     a &= a - 1;
-                    let (m, d) = ray_hit(singles.get(rays, i), node, t_max[i]);
+                    // SAFETY: `all` wrote the first `rays.len()` entries; `active` names no others.
+                    let r = unsafe { single[i].assume_init_ref() };
+                    let (m, d) = ray_hit(r, node, t_max[i]);
                     let mut l = m & leaves;
                     if l != 0 {
                         while l != 0 {
@@ -502,9 +505,10 @@ impl Bvh {
     }
 
     /// The packet walk over interior nodes, in `ORDER` by the packet's lower bound of entry,
-    /// each node carrying the mask of the packet's rays that may enter it. A node reached by
-    /// one ray alone is tested with `ray_hit(state, ray, node, t_max)`, that ray's own test,
-    /// where it gives one (else with the packet's, `packet_hit`).
+    /// each node carrying the mask of the packet's rays that may enter it. In a tree with
+    /// spans (a large one), a node reached by one ray alone is tested with
+    /// `ray_hit(state, ray, node, t_max)`, that ray's own test, where it gives one (else with
+    /// the packet's, `packet_hit`).
     /// `per_ray(state, node, leaves, inner, rays, t_max, live)` is called where the packet
     /// enters leaf children (`leaves`) or two or more interior ones (`inner`) and `rays` holds
     /// more than one ray; it handles the leaves, may clear rays that are done from `live` (any-hit
@@ -540,18 +544,20 @@ impl Bvh {
         let mut live = all;
         loop {
             let node = &self.nodes[index];
-            // A lone ray takes its own test where the owner has one: the packet's bounds
-            // would send it into every subtree the whole packet may reach (in a 10 M-triangle
-            // mesh, 14% of the walk's node visits, each a cache miss).
-            let lone = active & (active - 1) == 0;
-            let own = match lone {
-                true => ray_hit(state, active.trailing_zeros() as usize, node, t_max),
-                false => None,
+            // In a large tree (one with spans), a lone ray takes its own test where the owner
+            // has one: the packet's bounds would send it into every subtree the whole packet
+            // may reach (in a 10 M-triangle mesh, 14% of the walk's node visits, each a cache
+            // miss). In a cached tree those visits cost little, and the dragon ran 1-2%
+            // slower with the test everywhere.
+            let many = active & (active - 1) != 0;
+            let own = match many || self.spans.is_empty() {
+                true => None,
+                false => ray_hit(state, active.trailing_zeros() as usize, node, t_max),
             };
             let (mask, dist) = own.unwrap_or_else(|| packet_hit(node, t_max_f32(far)));
             let leaves = mask & leaf_mask(node);
             let mut inner = mask & !leaves;
-            let parts = leaves != 0 || (inner & inner.wrapping_sub(1) != 0 && !lone);
+            let parts = leaves != 0 || (inner & inner.wrapping_sub(1) != 0 && many);
             let split = if parts {
                 let before = live;
                 let split = per_ray(state, node, leaves, inner, active, t_max, &mut live);
@@ -645,17 +651,23 @@ struct Singles {
 }
 
 impl Singles {
+    /// The set-ups, of which the first `rays.len()` are written.
     #[inline(always)]
-    fn get(&mut self, rays: &[Ray], i: usize) -> &RayF32 {
+    fn all(&mut self, rays: &[Ray]) -> &[MaybeUninit<RayF32>; PACKET] {
         if !self.ready {
             for (s, ray) in self.rays.iter_mut().zip(rays) {
                 s.write(RayF32::new(ray).expect("PacketBounds::new checked the range"));
             }
             self.ready = true;
         }
+        &self.rays
+    }
+
+    #[inline(always)]
+    fn get(&mut self, rays: &[Ray], i: usize) -> &RayF32 {
         assert!(i < rays.len(), "ray {i} of a packet of {}", rays.len());
-        // SAFETY: the first `rays.len()` entries were written above, and `i` is one of them.
-        unsafe { self.rays[i].assume_init_ref() }
+        // SAFETY: `all` writes the first `rays.len()` entries, and `i` is one of them.
+        unsafe { self.all(rays)[i].assume_init_ref() }
     }
 }
 
@@ -727,9 +739,10 @@ mod tests {
         let mut next = crate::test_rng::uniform(777);
         for (scale, offset) in [(1e-4, 0.0), (1.0, -2.0), (1e4, 1e5), (0.01, 1e3)] {
             let prims = boxes(3000, scale, offset, 31);
-            let bvh = Bvh::build(&prims);
+            // With spans, a ray left alone takes its own test (the large-tree walk).
+            let (plain, spanned) = (Bvh::build(&prims), Bvh::build(&prims).with_spans());
             let centre = DVec3::splat(5.0 * scale + offset);
-            for k in 0..40 {
+            for (k, bvh) in (0..80).map(|k| (k / 2, [&plain, &spanned][k % 2])) {
                 // A bundle from one eye point (coherent, like a pixel block), or from scattered
                 // origins in random directions (incoherent), of 1 to 64 rays.
                 let n = 1 + (k * 13) % PACKET;
@@ -749,7 +762,7 @@ mod tests {
                     })
                     .collect();
                 for t_max in [f64::INFINITY, 12.0 * scale] {
-                    let (single, packet) = leaves_met(&bvh, &rays, t_max);
+                    let (single, packet) = leaves_met(bvh, &rays, t_max);
                     for (s, p) in single.iter().zip(&packet) {
                         assert!(
                             s.iter().all(|leaf| p.binary_search(leaf).is_ok()),
@@ -846,9 +859,9 @@ mod tests {
         let (mut blocked, mut open) = (0, 0);
         for (scale, offset) in [(1e-4, 0.0), (1.0, -2.0), (1e4, 1e5)] {
             let prims = boxes(1500, scale, offset, 77);
-            let bvh = Bvh::build(&prims);
+            let (plain, spanned) = (Bvh::build(&prims), Bvh::build(&prims).with_spans());
             let centre = DVec3::splat(5.0 * scale + offset);
-            for k in 0..60 {
+            for (k, bvh) in (0..120).map(|k| (k / 2, [&plain, &spanned][k % 2])) {
                 // Shadow-like rays from points in the boxes' region toward one light (some
                 // blocked, some not), rays in scattered directions of mixed signs, and an
                 // axis-parallel ray (f64 fallback) in some packets; 1 to 64 rays each.
