@@ -440,7 +440,13 @@ impl Bvh {
             t_max,
             all,
             packet_hit,
-            |singles, i, node, t_max| Some(ray_hit(singles.get(rays, i), node, t_max[i])),
+            // Only in a large tree (one with spans): the packet's bounds would send a lone ray
+            // into every subtree the whole packet may reach (on a 10 M-triangle mesh, 13% of
+            // the walk's node visits, each a cache miss). In a cached tree those visits cost
+            // little, and the dragon ran 1-2% slower with the own test everywhere.
+            |singles, i, node, t_max| {
+                (!self.spans.is_empty()).then(|| ray_hit(singles.get(rays, i), node, t_max))
+            },
             |singles, node, leaves, inner, active, t_max, live| {
                 let single = singles.all(rays);
                 let mut split = [0u64; WIDTH];
@@ -505,10 +511,9 @@ impl Bvh {
     }
 
     /// The packet walk over interior nodes, in `ORDER` by the packet's lower bound of entry,
-    /// each node carrying the mask of the packet's rays that may enter it. In a tree with
-    /// spans (a large one), a node reached by one ray alone is tested with
-    /// `ray_hit(state, ray, node, t_max)`, that ray's own test, where it gives one (else with
-    /// the packet's, `packet_hit`).
+    /// each node carrying the mask of the packet's rays that may enter it. A node reached by
+    /// one ray alone is tested with `ray_hit(state, ray, node, t_max)`, that ray's own test,
+    /// where the owner gives one (else with the packet's, `packet_hit`).
     /// `per_ray(state, node, leaves, inner, rays, t_max, live)` is called where the packet
     /// enters leaf children (`leaves`) or two or more interior ones (`inner`) and `rays` holds
     /// more than one ray; it handles the leaves, may clear rays that are done from `live` (any-hit
@@ -523,7 +528,7 @@ impl Bvh {
         t_max: &mut [f64],
         all: u64,
         packet_hit: impl Fn(&Node, f32) -> (u32, [f32; WIDTH]),
-        ray_hit: impl Fn(&mut S, usize, &Node, &[f64]) -> Option<(u32, [f32; WIDTH])>,
+        ray_hit: impl Fn(&mut S, usize, &Node, f64) -> Option<(u32, [f32; WIDTH])>,
         mut per_ray: impl FnMut(
             &mut S,
             &Node,
@@ -544,15 +549,13 @@ impl Bvh {
         let mut live = all;
         loop {
             let node = &self.nodes[index];
-            // In a large tree (one with spans), a lone ray takes its own test where the owner
-            // has one: the packet's bounds would send it into every subtree the whole packet
-            // may reach (in a 10 M-triangle mesh, 14% of the walk's node visits, each a cache
-            // miss). In a cached tree those visits cost little, and the dragon ran 1-2%
-            // slower with the test everywhere.
             let many = active & (active - 1) != 0;
-            let own = match many || self.spans.is_empty() {
+            let own = match many {
                 true => None,
-                false => ray_hit(state, active.trailing_zeros() as usize, node, t_max),
+                false => {
+                    let i = active.trailing_zeros() as usize;
+                    ray_hit(state, i, node, t_max[i])
+                }
             };
             let (mask, dist) = own.unwrap_or_else(|| packet_hit(node, t_max_f32(far)));
             let leaves = mask & leaf_mask(node);
