@@ -398,6 +398,9 @@ pub struct World {
     /// Times (in frames) the movers' bounds cover.
     pub time_span: (f64, f64),
     objects: Vec<Object>,
+    /// Per scene triangle, its unit geometric normal (made once: a hit on a floor or a wall
+    /// would otherwise take a cross product and a square root).
+    triangle_normals: Vec<DVec3>,
     model_triangles: Vec<ModelTriangle>,
     top: Bvh,
     /// `top`'s nodes in the layout of the top level's own traversal.
@@ -476,6 +479,7 @@ impl World {
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
         let slot_surface = surfaces(&objects, &triangles, &model_triangles);
         let top_level = TopLevel::new(&top);
+        let triangle_normals = triangles.iter().map(geometric_normal).collect();
         let linear_top = objects.len() == 1
             || objects.len() <= LINEAR_TOP
                 && objects
@@ -489,6 +493,7 @@ impl World {
             movers,
             time_span,
             objects,
+            triangle_normals,
             model_triangles,
             top,
             top_level,
@@ -1113,7 +1118,12 @@ impl World {
                 let s = &self.spheres[i as usize];
                 sphere_patch(position, &s.transform, s.radius, s.material)
             }
-            Object::Triangle(i) => triangle_patch(position, &self.triangles[i as usize], hit.bary),
+            Object::Triangle(i) => triangle_patch(
+                position,
+                &self.triangles[i as usize],
+                self.triangle_normals[i as usize],
+                hit.bary,
+            ),
             Object::Model(i) => {
                 let model = &self.models[i as usize];
                 let mesh = &self.meshes[model.mesh as usize];
@@ -1139,7 +1149,7 @@ impl World {
                             tex_coords: local.tex_coords,
                             materials: local.materials,
                         };
-                        triangle_patch(position, &world, hit.bary)
+                        triangle_patch(position, &world, geometric_normal(&world), hit.bary)
                     }
                     MoverShape::Model { mesh, material } => {
                         let mesh = &self.meshes[*mesh as usize];
@@ -1341,11 +1351,20 @@ fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> 
     }
 }
 
-#[inline(always)]
-fn triangle_patch(position: DVec3, t: &WorldTriangle, bary: [f64; 3]) -> Patch<'static> {
-    let [b0, b1, b2] = bary;
+/// A scene triangle's unit geometric normal (zero where it is degenerate).
+fn geometric_normal(t: &WorldTriangle) -> DVec3 {
     let [p0, p1, p2] = t.positions;
-    let geometric = (p1 - p0).cross(p2 - p0).normalize_or_zero();
+    (p1 - p0).cross(p2 - p0).normalize_or_zero()
+}
+
+#[inline(always)]
+fn triangle_patch(
+    position: DVec3,
+    t: &WorldTriangle,
+    geometric: DVec3,
+    bary: [f64; 3],
+) -> Patch<'static> {
+    let [b0, b1, b2] = bary;
     let interpolated = b0 * t.normals[0] + b1 * t.normals[1] + b2 * t.normals[2];
     Patch {
         position,

@@ -60,8 +60,7 @@ pub fn parse_obj_with_limit(
     let mut raw_tex: Vec<DVec2> = Vec::new();
     let mut mesh = MeshData::default();
     let mut format: Option<FaceFormat> = None;
-    // Key: (position, tex coord, normal), -1 where absent.
-    let mut vertex_ids: HashMap<(i64, i64, i64), u32> = HashMap::new();
+    let mut vertex_ids = VertexIds::default();
     let mut face: Vec<u32> = Vec::with_capacity(4);
 
     for (line_index, line) in text.lines().enumerate() {
@@ -89,18 +88,24 @@ pub fn parse_obj_with_limit(
             }
             "f" => {
                 face.clear();
-                let corners: Vec<&str> = tokens.collect();
-                if corners.len() < 3 || corners.len() > 4 {
+                // At most four corners are kept; more are only counted, for the message.
+                let mut corners = [""; 4];
+                let mut count = 0;
+                for token in tokens {
+                    if count < corners.len() {
+                        corners[count] = token;
+                    }
+                    count += 1;
+                }
+                if !(3..=4).contains(&count) {
                     return Err(err(
                         kind,
-                        format!(
-                            "a face needs 3 or 4 vertices, this one has {}",
-                            corners.len()
-                        ),
+                        format!("a face needs 3 or 4 vertices, this one has {count}"),
                     ));
                 }
+                let corners = &corners[..count];
                 let format = *format.get_or_insert_with(|| FaceFormat::detect(corners[0]));
-                for token in corners {
+                for &token in corners {
                     let key = corner_key(
                         token,
                         format,
@@ -108,7 +113,7 @@ pub fn parse_obj_with_limit(
                     )
                     .map_err(|m| err(token, m))?;
                     let next_id = mesh.positions.len() as u32;
-                    let id = *vertex_ids.entry(key).or_insert(next_id);
+                    let id = vertex_ids.id(key, next_id);
                     if id == next_id {
                         mesh.positions.push(raw_positions[key.0 as usize]);
                         mesh.tex_coords.push(if key.1 >= 0 {
@@ -182,19 +187,66 @@ fn read_numbers<const N: usize>(
     Ok(out)
 }
 
+/// The de-duplicated vertex of each (position, tex coord, normal) key (-1 where absent).
+/// Most positions are used with one key only (all of the course's meshes'): the first key
+/// of each position sits in a table indexed by position, and only later ones are hashed,
+/// which made parsing the dragon several times faster than hashing every corner.
+#[derive(Default)]
+struct VertexIds {
+    /// Per position index, the vertex of the first key seen with it (u32::MAX: none yet).
+    first: Vec<u32>,
+    /// Per vertex, the tex coord and normal of its key.
+    rest: Vec<(i64, i64)>,
+    /// Keys whose position had been seen with another key first.
+    others: HashMap<(i64, i64, i64), u32>,
+}
+
+impl VertexIds {
+    /// The vertex of `key`, or `next` (recorded as its vertex) where `key` is new; new keys
+    /// come with consecutive `next`s from 0.
+    fn id(&mut self, key: (i64, i64, i64), next: u32) -> u32 {
+        let (position, tex, normal) = key;
+        let position = position as usize;
+        if position >= self.first.len() {
+            self.first.resize(position + 1, u32::MAX);
+        }
+        let first = self.first[position];
+        let id = if first == u32::MAX {
+            self.first[position] = next;
+            next
+        } else if self.rest[first as usize] == (tex, normal) {
+            first
+        } else {
+            *self.others.entry(key).or_insert(next)
+        };
+        if id == next {
+            self.rest.push((tex, normal));
+        }
+        id
+    }
+}
+
 /// Resolves one face corner to its (position, tex coord, normal) key, all 0-based.
 fn corner_key(
     token: &str,
     format: FaceFormat,
     counts: [usize; 3],
 ) -> Result<(i64, i64, i64), String> {
-    let parts: Vec<&str> = token.split('/').collect();
+    // Up to three parts are kept; a fourth only makes the count wrong.
+    let mut parts = [""; 3];
+    let mut count = 0;
+    for part in token.split('/') {
+        if count < parts.len() {
+            parts[count] = part;
+        }
+        count += 1;
+    }
     let expected = match format {
         FaceFormat::Position => 1,
         FaceFormat::PositionTex => 2,
         FaceFormat::PositionNormal | FaceFormat::PositionTexNormal => 3,
     };
-    let shape_ok = parts.len() == expected
+    let shape_ok = count == expected
         && match format {
             FaceFormat::PositionNormal => parts[1].is_empty(),
             FaceFormat::PositionTexNormal => !parts[1].is_empty(),
@@ -270,6 +322,23 @@ mod tests {
     }
 
     #[test]
+    fn a_position_with_several_keys_makes_a_vertex_per_key_in_first_seen_order() {
+        // Position 1 with normals 1, 2, then 1 again, and position 2 with one key: the
+        // vertices are numbered as their keys first appear, whichever way they are found.
+        let text = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nvn 0 1 0\n\
+                    f 1//1 2//1 3//1\nf 1//2 3//1 2//1\nf 3//2 1//2 1//1\nf 2//1 1//1 3//2\n";
+        let mesh = parse_obj(text, "k.obj").unwrap();
+        assert_eq!(
+            mesh.triangles,
+            vec![[0, 1, 2], [3, 2, 1], [4, 3, 0], [1, 0, 4]]
+        );
+        assert_eq!(mesh.positions[3], DVec3::ZERO);
+        assert_eq!(mesh.normals[3], DVec3::Y);
+        assert_eq!(mesh.positions[4], DVec3::Y);
+        assert_eq!(mesh.normals[4], DVec3::Y);
+    }
+
+    #[test]
     fn all_four_face_forms() {
         let head = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\n";
         for (face, normals, tex) in [
@@ -314,6 +383,11 @@ mod tests {
         assert_eq!((e.line, e.column), (4, 3), "{e}");
         let e = parse_obj(&format!("{head}f 1 2\n"), "m.obj").unwrap_err();
         assert!(e.message.contains("3 or 4"), "{e}");
+        let e = parse_obj(&format!("{head}f 1 2 3 1 2\n"), "m.obj").unwrap_err();
+        assert!(e.message.contains("this one has 5"), "{e}");
+        let e = parse_obj(&format!("{head}vn 0 0 1\nf 1//1//1 2//1 3//1\n"), "m.obj").unwrap_err();
+        assert_eq!((e.line, e.column), (5, 3), "{e}");
+        assert!(e.message.contains("face format"), "{e}");
         let e = parse_obj("v 0 x 0\n", "m.obj").unwrap_err();
         assert_eq!((e.line, e.column), (1, 5), "{e}");
         let e = parse_obj("v 0 0\n", "m.obj").unwrap_err();
