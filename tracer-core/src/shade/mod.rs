@@ -224,7 +224,10 @@ impl<'a> Tracer<'a> {
         // What a ray spawned here leaves, by the side it heads to: [into, out of] the surface.
         let leaving = [false, true].map(|outward| stage.world.leaving(hit, outward));
         let leaving_toward = |dir: DVec3| leaving[(dir.dot(s.geometric_normal) > 0.0) as usize];
-        let error_scale = s.position.abs().max_element() + hit.t;
+        // `s.position` is this very point (`World::patch` makes it so); computed again here, it
+        // comes from registers instead of a load that waits on the patch's narrower stores
+        // (that wait was 14-18% of this function's time).
+        let error_scale = ray.at(hit.t).abs().max_element() + hit.t;
         let d = ray.dir;
 
         if s.ior == 0.0 {
