@@ -311,10 +311,11 @@ impl Leaving {
 const NO_SURFACE: u32 = u32::MAX;
 
 /// What [`World::occluded_by`] remembers of a family of shadow rays: the object that blocked
-/// the last one, if it was blocked.
+/// the last one, if it was blocked, and the triangle slot within its mesh that did.
 #[derive(Clone, Debug, Default)]
 pub struct ShadowCache {
     last: Option<u32>,
+    prim: u32,
 }
 
 /// The closest intersection found along a ray.
@@ -922,23 +923,30 @@ impl World {
         cache: &mut ShadowCache,
         leaving: Leaving,
     ) -> bool {
+        let remembered = cache
+            .last
+            .filter(|&slot| !self.skips(slot as usize, leaving));
+        // A mesh's remembered triangle first: one exact test, where the mesh's walk would
+        // make dozens (neighbouring samples' rays mostly pass the same triangle).
+        if remembered.is_some_and(|slot| self.mesh_triangle_blocks(slot, cache.prim, ray, t_max)) {
+            return true;
+        }
+        let mut world_tri_ray = None;
         if self.objects.len() == 1 {
             if self.skips(0, leaving) {
                 return false;
             }
-            // The walk tests the one object directly: a remembered blocker would only test
-            // it twice where it does not block (dragon.scene's mesh: a traversal each).
-            return self.occluded(ray, t_max);
+            // The one object is all the walk would test.
+            let hit = self.hit_object::<true>(0, ray, 0.0, t_max, &mut world_tri_ray);
+            cache.last = hit.map(|_| 0);
+            cache.prim = hit.map_or(0, |h| h.prim);
+            return hit.is_some();
         }
-        let mut world_tri_ray = None;
-        if let Some(slot) = cache
-            .last
-            .filter(|&slot| !self.skips(slot as usize, leaving))
-        {
-            if self
-                .hit_object::<true>(slot as usize, ray, 0.0, t_max, &mut world_tri_ray)
-                .is_some()
+        if let Some(slot) = remembered {
+            if let Some(hit) =
+                self.hit_object::<true>(slot as usize, ray, 0.0, t_max, &mut world_tri_ray)
             {
+                cache.prim = hit.prim;
                 return true;
             }
         }
@@ -948,16 +956,31 @@ impl World {
             if self.skips(slot, leaving) {
                 return false;
             }
-            let hit = self
-                .hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
-                .is_some();
-            if hit {
-                blocker = Some(slot as u32);
+            let hit = self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray);
+            if let Some(hit) = hit {
+                blocker = Some((slot as u32, hit.prim));
             }
-            hit
+            hit.is_some()
         });
-        cache.last = blocker;
+        cache.last = blocker.map(|(slot, _)| slot);
+        cache.prim = blocker.map_or(0, |(_, prim)| prim);
         found
+    }
+
+    /// Whether triangle slot `prim` of the mesh model in top-level `slot` blocks `ray` for t
+    /// in (0, `t_max`), by the exact test the mesh's walk makes (the same local ray, so a
+    /// triangle found here is one the walk finds too); false for any other object.
+    fn mesh_triangle_blocks(&self, slot: u32, prim: u32, ray: &Ray, t_max: f64) -> bool {
+        let Object::Model(i) = self.objects[slot as usize] else {
+            return false;
+        };
+        let model = &self.models[i as usize];
+        let mesh = &self.meshes[model.mesh as usize];
+        let Some(&[a, b, c]) = mesh.corners.get(prim as usize) else {
+            return false;
+        };
+        let tri_ray = TriangleRay::new(&model.transform.ray_to_local(ray));
+        intersect_triangle(&tri_ray, a, b, c, 0.0, t_max).is_some()
     }
 
     /// The object in top-level slot `slot` against the ray, for t in (t_min, t_max): its
@@ -1623,6 +1646,70 @@ mod tests {
         }
         assert!(blocked > 400 && blocked < 3600, "{blocked} blocked");
         assert!(remembered > 200, "{remembered} blocked after a blocked ray");
+    }
+
+    #[test]
+    fn a_remembered_mesh_triangle_gives_the_walks_answer() {
+        // A bumpy mesh held over a floor, alone (the one-object path) and beside a sphere (the
+        // walk's path): shadow rays from the floor's points in rows, some stopping short of
+        // the mesh, each answered as the full walk answers it.
+        let mesh = grid_mesh(12, |x, y| 0.3 * (11.0 * x).sin() * (7.0 * y).cos());
+        let model = Model {
+            transform: Transform::new(
+                DVec3::new(-1.5, 2.0, 1.5),
+                glam::DQuat::from_rotation_x(-std::f64::consts::FRAC_PI_2),
+                DVec3::splat(3.0),
+            ),
+            mesh: 0,
+            material: 0,
+        };
+        let sphere = Sphere {
+            transform: Transform::new(DVec3::new(3.0, 1.0, 0.0), glam::DQuat::IDENTITY, DVec3::ONE),
+            radius: 0.5,
+            material: 0,
+        };
+        for spheres in [vec![], vec![sphere]] {
+            let world = World::with_movers(
+                spheres,
+                vec![],
+                vec![mesh.clone()],
+                vec![model.clone()],
+                vec![],
+                (0.0, 0.0),
+            );
+            let slot = (world.objects.iter())
+                .position(|o| matches!(o, Object::Model(_)))
+                .unwrap() as u32;
+            let mut next = crate::test_rng::uniform(5);
+            let light = DVec3::new(0.5, 8.0, -0.5);
+            let mut cache = ShadowCache::default();
+            let (mut blocked, mut by_triangle) = (0, 0);
+            for i in 0..3000 {
+                let p = DVec3::new(
+                    (i % 60) as f64 / 12.0 - 2.5,
+                    0.0,
+                    (i / 60) as f64 / 10.0 - 2.5,
+                );
+                let target = light + 0.2 * (DVec3::new(next(), next(), next()) - 0.5);
+                let to = target - p;
+                let ray = Ray::new(p, to.normalize());
+                // Some rays stop short of the mesh, or about at it.
+                let t_max = to.length() * [1.0, 1.0, 0.2, 0.25][i % 4];
+                if cache.last == Some(slot)
+                    && world.mesh_triangle_blocks(slot, cache.prim, &ray, t_max)
+                {
+                    by_triangle += 1;
+                }
+                let by = world.occluded_by(&ray, t_max, &mut cache, Leaving::NOTHING);
+                assert_eq!(by, world.occluded(&ray, t_max), "ray {i}");
+                blocked += by as u32;
+            }
+            assert!(blocked > 300 && blocked < 2700, "{blocked} blocked");
+            assert!(
+                by_triangle > 100,
+                "{by_triangle} blocked by the remembered triangle"
+            );
+        }
     }
 
     #[test]
