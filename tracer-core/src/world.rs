@@ -1596,6 +1596,41 @@ mod tests {
         );
     }
 
+    /// Points of the floor y = corner.y walked in rows of `columns`, as a row of pixels
+    /// would, `per_unit` points per unit along x and z from `corner`.
+    struct Floor<'a> {
+        rays: usize,
+        columns: usize,
+        corner: DVec3,
+        per_unit: (f64, f64),
+        light: DVec3,
+        /// The light point's random offset per axis, in [−jitter/2, jitter/2).
+        jitter: f64,
+        /// Ray i stops at `stops[i % stops.len()]` of the distance to its light point.
+        stops: &'a [f64],
+    }
+
+    impl Floor<'_> {
+        /// A shadow ray from each point toward a jittered light point, with its `t_max`.
+        fn shadow_rays(&self, next: &mut impl FnMut() -> f64) -> Vec<(Ray, f64)> {
+            (0..self.rays)
+                .map(|i| {
+                    let p = self.corner
+                        + DVec3::new(
+                            (i % self.columns) as f64 / self.per_unit.0,
+                            0.0,
+                            (i / self.columns) as f64 / self.per_unit.1,
+                        );
+                    let target =
+                        self.light + self.jitter * (DVec3::new(next(), next(), next()) - 0.5);
+                    let to = target - p;
+                    let stop = self.stops[i % self.stops.len()];
+                    (Ray::new(p, to.normalize()), to.length() * stop)
+                })
+                .collect()
+        }
+    }
+
     #[test]
     fn a_remembered_blocker_gives_the_walks_answer() {
         let mut next = crate::test_rng::uniform(17);
@@ -1623,21 +1658,19 @@ mod tests {
             })
             .collect();
         let world = World::with_movers(spheres, triangles, vec![], vec![], vec![], (0.0, 0.0));
-        let light = DVec3::new(1.0, 9.0, 2.0);
         let mut cache = ShadowCache::default();
         let (mut blocked, mut remembered) = (0, 0);
-        // Shadow rays from points of a floor walked in rows, as a row of pixels would.
-        for i in 0..4000 {
-            let p = DVec3::new(
-                (i % 80) as f64 / 10.0 - 4.0,
-                0.0,
-                (i / 80) as f64 / 6.0 - 4.0,
-            );
-            let target = light + DVec3::new(next(), next(), next()) - 0.5;
-            let to = target - p;
-            let ray = Ray::new(p, to.normalize());
-            // Some rays stop short of their blocker.
-            let t_max = to.length() * if i % 3 == 0 { 0.3 } else { 1.0 };
+        // Some rays stop short of their blocker.
+        let floor = Floor {
+            rays: 4000,
+            columns: 80,
+            corner: DVec3::new(-4.0, 0.0, -4.0),
+            per_unit: (10.0, 6.0),
+            light: DVec3::new(1.0, 9.0, 2.0),
+            jitter: 1.0,
+            stops: &[0.3, 1.0, 1.0],
+        };
+        for (i, (ray, t_max)) in floor.shadow_rays(&mut next).into_iter().enumerate() {
             let had = cache.last.is_some();
             let by = world.occluded_by(&ray, t_max, &mut cache, Leaving::NOTHING);
             assert_eq!(by, world.occluded(&ray, t_max), "ray {i}");
@@ -1680,21 +1713,20 @@ mod tests {
             let slot = (world.objects.iter())
                 .position(|o| matches!(o, Object::Model(_)))
                 .unwrap() as u32;
-            let mut next = crate::test_rng::uniform(5);
-            let light = DVec3::new(0.5, 8.0, -0.5);
             let mut cache = ShadowCache::default();
             let (mut blocked, mut by_triangle) = (0, 0);
-            for i in 0..3000 {
-                let p = DVec3::new(
-                    (i % 60) as f64 / 12.0 - 2.5,
-                    0.0,
-                    (i / 60) as f64 / 10.0 - 2.5,
-                );
-                let target = light + 0.2 * (DVec3::new(next(), next(), next()) - 0.5);
-                let to = target - p;
-                let ray = Ray::new(p, to.normalize());
-                // Some rays stop short of the mesh, or about at it.
-                let t_max = to.length() * [1.0, 1.0, 0.2, 0.25][i % 4];
+            // Some rays stop short of the mesh, or about at it.
+            let floor = Floor {
+                rays: 3000,
+                columns: 60,
+                corner: DVec3::new(-2.5, 0.0, -2.5),
+                per_unit: (12.0, 10.0),
+                light: DVec3::new(0.5, 8.0, -0.5),
+                jitter: 0.2,
+                stops: &[1.0, 1.0, 0.2, 0.25],
+            };
+            let rays = floor.shadow_rays(&mut crate::test_rng::uniform(5));
+            for (i, (ray, t_max)) in rays.into_iter().enumerate() {
                 if cache.last == Some(slot)
                     && world.mesh_triangle_blocks(slot, cache.prim, &ray, t_max)
                 {

@@ -89,14 +89,7 @@ pub fn parse_obj_with_limit(
             "f" => {
                 face.clear();
                 // At most four corners are kept; more are only counted, for the message.
-                let mut corners = [""; 4];
-                let mut count = 0;
-                for token in tokens {
-                    if count < corners.len() {
-                        corners[count] = token;
-                    }
-                    count += 1;
-                }
+                let (corners, count) = first_of::<4>(tokens);
                 if !(3..=4).contains(&count) {
                     return Err(err(
                         kind,
@@ -226,6 +219,20 @@ impl VertexIds {
     }
 }
 
+/// The first `N` items of `items` and how many there were in all, without allocating (missing
+/// ones are empty).
+fn first_of<'a, const N: usize>(items: impl Iterator<Item = &'a str>) -> ([&'a str; N], usize) {
+    let mut first = [""; N];
+    let mut count = 0;
+    for item in items {
+        if count < N {
+            first[count] = item;
+        }
+        count += 1;
+    }
+    (first, count)
+}
+
 /// Resolves one face corner to its (position, tex coord, normal) key, all 0-based.
 fn corner_key(
     token: &str,
@@ -233,14 +240,7 @@ fn corner_key(
     counts: [usize; 3],
 ) -> Result<(i64, i64, i64), String> {
     // Up to three parts are kept; a fourth only makes the count wrong.
-    let mut parts = [""; 3];
-    let mut count = 0;
-    for part in token.split('/') {
-        if count < parts.len() {
-            parts[count] = part;
-        }
-        count += 1;
-    }
+    let (parts, count) = first_of::<3>(token.split('/'));
     let expected = match format {
         FaceFormat::Position => 1,
         FaceFormat::PositionTex => 2,

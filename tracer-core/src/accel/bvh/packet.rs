@@ -550,12 +550,11 @@ impl Bvh {
         loop {
             let node = &self.nodes[index];
             let many = active & (active - 1) != 0;
-            let own = match many {
-                true => None,
-                false => {
-                    let i = active.trailing_zeros() as usize;
-                    ray_hit(state, i, node, t_max[i])
-                }
+            let own = if many {
+                None
+            } else {
+                let i = active.trailing_zeros() as usize;
+                ray_hit(state, i, node, t_max[i])
             };
             let (mask, dist) = own.unwrap_or_else(|| packet_hit(node, t_max_f32(far)));
             let leaves = mask & leaf_mask(node);
