@@ -13,7 +13,7 @@ use crate::sampler::{uniform_sphere, Rng};
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use crate::shade::{spawn_ray, Surface};
-use crate::world::{Mesh, World};
+use crate::world::{Hit, Leaving, Mesh, World};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchReport {
@@ -53,11 +53,13 @@ pub struct RaySets {
     pub width: usize,
     pub near: f64,
     pub far: f64,
-    /// One uniformly random direction from every primary hit, offset as the shader would.
-    pub incoherent: Vec<Ray>,
-    /// From every primary hit to the first light, with the distance to it (empty without
-    /// a light).
-    pub shadow: Vec<(Ray, f64)>,
+    /// One uniformly random direction from every primary hit, offset as the shader would,
+    /// and what it leaves there (traced as the shader traces its rays:
+    /// [`World::intersect_leaving`]).
+    pub incoherent: Vec<(Ray, Leaving)>,
+    /// From every primary hit to the first light, with the distance to it and what the ray
+    /// leaves (empty without a light).
+    pub shadow: Vec<(Ray, f64, Leaving)>,
     /// The pixel (index into `primary`) each shadow ray starts from, ascending.
     pub shadow_pixel: Vec<u32>,
     /// The parallel work items of [`Measure::Shadow`]: runs of 8×8-pixel blocks along one
@@ -100,34 +102,42 @@ impl RaySets {
         let (near, far) = (camera.near, camera.far);
 
         let stage = scene.stage(settings.texture_filter, None);
-        let hits: Vec<(u32, Surface, f64)> = primary
+        let hits: Vec<(u32, Surface, f64, Hit)> = primary
             .par_iter()
             .enumerate()
             .filter_map(|(i, ray)| {
                 let hit = scene.world.intersect(ray, near, far)?;
                 let s = stage.surface(ray, &hit);
-                Some((i as u32, s, s.position.abs().max_element() + hit.t))
+                Some((i as u32, s, s.position.abs().max_element() + hit.t, hit))
             })
             .collect();
         let incoherent = hits
             .iter()
-            .map(|(i, s, scale)| {
+            .map(|(i, s, scale, hit)| {
                 let mut rng = Rng::for_sample(settings.seed, i % w, i / w, 0);
                 let dir = uniform_sphere(rng.next_f64(), rng.next_f64());
-                spawn_ray(s.position, s.geometric_normal, dir, *scale, 0.0)
+                let leaving = scene.world.leaving(hit, dir.dot(s.geometric_normal) > 0.0);
+                let ray = spawn_ray(s.position, s.geometric_normal, dir, *scale, 0.0);
+                (ray, leaving)
             })
             .collect();
-        let (shadow, shadow_pixel): (Vec<(Ray, f64)>, Vec<u32>) = match scene.lights.first() {
+        let (shadow, shadow_pixel): (Vec<(Ray, f64, Leaving)>, Vec<u32>) = match scene
+            .lights
+            .first()
+        {
             Some(light) => hits
                 .iter()
-                .filter_map(|(i, s, scale)| {
+                .filter_map(|(i, s, scale, hit)| {
                     let to_light = light.position - s.position;
                     let d = to_light.length();
                     (d > 0.0).then(|| {
                         let ray =
                             spawn_ray(s.position, s.geometric_normal, to_light / d, *scale, 0.0);
                         let len = (light.position - ray.origin).length();
-                        ((ray, len), *i)
+                        let leaving = scene
+                            .world
+                            .leaving(hit, to_light.dot(s.geometric_normal) > 0.0);
+                        ((ray, len, leaving), *i)
                     })
                 })
                 .unzip(),
@@ -250,28 +260,32 @@ fn trace_item(scene: &Scene, rays: &RaySets, measure: Measure, item: usize) -> u
             .count(),
         Measure::Incoherent => rays.incoherent[range]
             .iter()
-            .filter(|r| world.intersect(r, 0.0, f64::INFINITY).is_some())
+            .filter(|(r, leaving)| {
+                world
+                    .intersect_leaving(r, 0.0, f64::INFINITY, *leaving)
+                    .is_some()
+            })
             .count(),
         Measure::Shadow => {
             let mut blocked = 0;
             let mut found = [false; PACKET];
-            shadow_packets(rays, item, |packet, limits| {
+            shadow_packets(rays, item, |packet, limits, leaving| {
                 let found = &mut found[..packet.len()];
-                world.occluded_packet(packet, limits, found);
+                world.occluded_packet(packet, limits, leaving, found);
                 blocked += found.iter().filter(|&&b| b).count();
             });
             blocked
         }
         Measure::ShadowSingle => rays.shadow[range]
             .iter()
-            .filter(|(r, len)| world.occluded(r, *len))
+            .filter(|(r, len, leaving)| world.occluded_leaving(r, *len, *leaving))
             .count(),
     }
 }
 
-/// Hands `packet(rays, t_max)` the shadow rays of each 8×8-pixel block of work item `item`
+/// Hands `packet(rays, t_max, leaving)` the shadow rays of each 8×8-pixel block of work item `item`
 /// of [`Measure::Shadow`], block by block (an empty slice for a block without any).
-fn shadow_packets(rays: &RaySets, item: usize, mut packet: impl FnMut(&[Ray], &[f64])) {
+fn shadow_packets(rays: &RaySets, item: usize, mut packet: impl FnMut(&[Ray], &[f64], &[Leaving])) {
     let width = rays.width;
     let height = rays.primary.len() / width;
     let item = rays.shadow_items[item];
@@ -285,18 +299,19 @@ fn shadow_packets(rays: &RaySets, item: usize, mut packet: impl FnMut(&[Ray], &[
     }
     let mut shadow = [Ray::new(glam::DVec3::ZERO, glam::DVec3::Z); PACKET];
     let mut limits = [0.0; PACKET];
+    let mut leaving = [Leaving::NOTHING; PACKET];
     for block in item.first as usize..item.end as usize {
         let x_end = ((block + 1) * PACKET_SIDE).min(width);
         let mut len = 0;
         for (n, y) in next.iter_mut().zip(ys.clone()) {
             let end = (y * width + x_end) as u32;
             while *n < rays.shadow.len() && rays.shadow_pixel[*n] < end {
-                (shadow[len], limits[len]) = rays.shadow[*n];
+                (shadow[len], limits[len], leaving[len]) = rays.shadow[*n];
                 len += 1;
                 *n += 1;
             }
         }
-        packet(&shadow[..len], &limits[..len]);
+        packet(&shadow[..len], &limits[..len], &leaving[..len]);
     }
 }
 
@@ -407,7 +422,10 @@ mod tests {
                 .collect();
             let shadow = shadow_pixel
                 .iter()
-                .map(|&p| (Ray::new(DVec3::new(p as f64, 0.0, 0.0), DVec3::Z), p as f64))
+                .map(|&p| {
+                    let ray = Ray::new(DVec3::new(p as f64, 0.0, 0.0), DVec3::Z);
+                    (ray, p as f64, Leaving::NOTHING)
+                })
                 .collect();
             let rays = RaySets {
                 primary: vec![Ray::new(DVec3::ZERO, DVec3::Z); w * h],
@@ -421,7 +439,7 @@ mod tests {
             };
             let mut seen = vec![0; w * h];
             for item in 0..work_items(&rays, Measure::Shadow) {
-                shadow_packets(&rays, item, |packet, limits| {
+                shadow_packets(&rays, item, |packet, limits, _| {
                     assert!(packet.len() <= PACKET);
                     let block = |p: usize| (p % w / PACKET_SIDE, p / w / PACKET_SIDE);
                     for (ray, &t) in packet.iter().zip(limits) {

@@ -296,16 +296,45 @@ struct ModelTriangle {
 ///   then exact); off any other triangle, that triangle;
 /// - off a sphere (or ellipsoid) heading out of it, that sphere: it is convex.
 ///
+/// - off a triangle of a mesh model, that triangle (the model's other triangles are tested).
+///
 /// Those are skipped without a test: a floor's or a wall's own triangles, or the sphere
-/// itself, which every shadow and mirror ray leaving it would otherwise test and miss.
+/// itself, which every shadow and mirror ray leaving it would otherwise test and miss; in a
+/// mesh, the triangle under the ray's origin, which passes the f32 pre-test (its edges
+/// enclose the origin) and would cost every ray off a mesh one exact test.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Leaving(u32);
+pub struct Leaving {
+    surface: u32,
+    /// The mesh model's top-level slot and the triangle slot within its mesh, or
+    /// [`NO_MESH_TRIANGLE`].
+    mesh_triangle: (u32, u32),
+}
 
 impl Leaving {
     /// A ray that leaves nothing it cannot meet again (an eye ray, a ray into a sphere, or
-    /// one leaving a mesh or a mover).
-    pub const NOTHING: Leaving = Leaving(u32::MAX - 1);
+    /// one leaving a mover).
+    pub const NOTHING: Leaving = Leaving {
+        surface: u32::MAX - 1,
+        mesh_triangle: NO_MESH_TRIANGLE,
+    };
+
+    /// The triangle slot within the mesh of top-level `slot` that the ray leaves, or
+    /// [`NO_PRIM`].
+    #[inline(always)]
+    fn prim_in(self, slot: usize) -> u32 {
+        if self.mesh_triangle.0 == slot as u32 {
+            self.mesh_triangle.1
+        } else {
+            NO_PRIM
+        }
+    }
 }
+
+/// [`Leaving::mesh_triangle`] of a ray that leaves no mesh triangle.
+const NO_MESH_TRIANGLE: (u32, u32) = (u32::MAX, u32::MAX);
+
+/// A triangle slot no mesh has: [`World::hit_object`] skips nothing.
+const NO_PRIM: u32 = u32::MAX;
 
 /// [`World::slot_surface`] of a slot no ray skips; never equal to a [`Leaving`].
 const NO_SURFACE: u32 = u32::MAX;
@@ -578,7 +607,14 @@ impl World {
                 return false;
             }
             let bound = tie_bound(best.is_some(), *t_max);
-            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, bound, &mut world_tri_ray) {
+            if let Some(h) = self.hit_object::<false>(
+                slot,
+                ray,
+                t_min,
+                bound,
+                leaving.prim_in(slot),
+                &mut world_tri_ray,
+            ) {
                 keep_nearer(&mut best, t_max, slot, h);
             }
             false
@@ -650,7 +686,9 @@ impl World {
         for &slot in slots {
             let slot = slot as usize;
             let bound = tie_bound(best.is_some(), t_max);
-            if let Some(h) = self.hit_object::<false>(slot, ray, t_min, bound, &mut world_tri_ray) {
+            if let Some(h) =
+                self.hit_object::<false>(slot, ray, t_min, bound, NO_PRIM, &mut world_tri_ray)
+            {
                 keep_nearer(&mut best, &mut t_max, slot, h);
             }
         }
@@ -736,8 +774,14 @@ impl World {
         let Object::Model(i) = self.objects[slot] else {
             for i in 0..n {
                 let bound = tie_bound(hits[i].is_some(), limits[i]);
-                let h =
-                    self.hit_object::<false>(slot, &rays[i], t_min, bound, &mut world_tri_rays[i]);
+                let h = self.hit_object::<false>(
+                    slot,
+                    &rays[i],
+                    t_min,
+                    bound,
+                    NO_PRIM,
+                    &mut world_tri_rays[i],
+                );
                 if let Some(h) = h {
                     keep_nearer(&mut hits[i], &mut limits[i], slot, h);
                 }
@@ -773,7 +817,15 @@ impl World {
                     let tri_ray = TriangleRay::new(&local[i]);
                     (tri_ray, TriangleRayF32::new(&tri_ray))
                 });
-                mesh_leaf::<false>(mesh, tri_ray, ray32, tris, t_min, t_max, &mut found[i]);
+                mesh_leaf::<false>(
+                    mesh,
+                    (tri_ray, ray32),
+                    tris,
+                    t_min,
+                    t_max,
+                    NO_PRIM,
+                    &mut found[i],
+                );
             });
         for i in 0..n {
             if let Some(h) = found[i] {
@@ -784,11 +836,26 @@ impl World {
 
     /// Whether anything lies along the ray with t in (0, t_max).
     pub fn occluded(&self, ray: &Ray, t_max: f64) -> bool {
+        self.occluded_leaving(ray, t_max, Leaving::NOTHING)
+    }
+
+    /// [`World::occluded`] for a ray spawned off the surface `leaving` names (see
+    /// [`World::leaving`]): the same answer, without testing what it cannot meet.
+    pub fn occluded_leaving(&self, ray: &Ray, t_max: f64, leaving: Leaving) -> bool {
         let mut world_tri_ray = None;
         let mut t_limit = t_max;
         self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
-            self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray)
-                .is_some()
+            !self.skips(slot, leaving)
+                && self
+                    .hit_object::<true>(
+                        slot,
+                        ray,
+                        0.0,
+                        *t_max,
+                        leaving.prim_in(slot),
+                        &mut world_tri_ray,
+                    )
+                    .is_some()
         })
     }
 
@@ -797,11 +864,18 @@ impl World {
     /// that ray. Coherent rays (the shadow rays of a block of pixels toward one light) share
     /// the work: a mesh's BVH is walked once for the packet ([`Bvh::traverse_packet_any`]),
     /// a multi-object world's top level too, and a packet that misses an object's box skips
-    /// it. A ray leaves the packet as soon as it is blocked.
-    pub fn occluded_packet(&self, rays: &[Ray], t_max: &[f64], blocked: &mut [bool]) {
+    /// it. A ray leaves the packet as soon as it is blocked. `leaving[i]` is what `rays[i]`
+    /// leaves ([`World::occluded_leaving`]).
+    pub fn occluded_packet(
+        &self,
+        rays: &[Ray],
+        t_max: &[f64],
+        leaving: &[Leaving],
+        blocked: &mut [bool],
+    ) {
         let n = rays.len();
         assert!(
-            n <= PACKET && t_max.len() == n && blocked.len() == n,
+            n <= PACKET && t_max.len() == n && leaving.len() == n && blocked.len() == n,
             "a packet of {n} rays"
         );
         if n == 0 {
@@ -816,12 +890,12 @@ impl World {
             // No world-space bounds: shadow rays start on surfaces inside the object's box,
             // so they would skip nothing, and a mesh's walk culls a packet that misses it at
             // its root (it also takes rays outside the f32 tests' range one by one).
-            self.object_packet_any(0, rays, limits, &mut live, &mut world_tri_rays);
+            self.object_packet_any(0, rays, limits, leaving, &mut live, &mut world_tri_rays);
         } else {
             let Some(packet) = PacketBounds::new(rays) else {
                 // A ray outside the f32 tests' range: the mesh walks would go ray by ray.
                 for i in 0..n {
-                    blocked[i] = self.occluded(&rays[i], t_max[i]);
+                    blocked[i] = self.occluded_leaving(&rays[i], t_max[i], leaving[i]);
                 }
                 return;
             };
@@ -829,7 +903,14 @@ impl World {
                 .top
                 .traverse_packet_leaves_any(&packet, limits, |slots, limits, live| {
                     for slot in slots {
-                        self.object_packet_any(slot, rays, limits, live, &mut world_tri_rays);
+                        self.object_packet_any(
+                            slot,
+                            rays,
+                            limits,
+                            leaving,
+                            live,
+                            &mut world_tri_rays,
+                        );
                         if *live == 0 {
                             break;
                         }
@@ -848,6 +929,7 @@ impl World {
         slot: usize,
         rays: &[Ray],
         limits: &[f64],
+        leaving: &[Leaving],
         live: &mut u64,
         world_tri_rays: &mut [Option<TriangleRay>; PACKET],
     ) {
@@ -856,8 +938,17 @@ impl World {
             while a != 0 {
                 let i = a.trailing_zeros() as usize;
                 a &= a - 1;
-                let hit =
-                    self.hit_object::<true>(slot, &rays[i], 0.0, limits[i], &mut world_tri_rays[i]);
+                if self.skips(slot, leaving[i]) {
+                    continue;
+                }
+                let hit = self.hit_object::<true>(
+                    slot,
+                    &rays[i],
+                    0.0,
+                    limits[i],
+                    NO_PRIM,
+                    &mut world_tri_rays[i],
+                );
                 if hit.is_some() {
                     *live &= !(1 << i);
                 }
@@ -900,8 +991,9 @@ impl World {
                         let tri_ray = TriangleRay::new(&local[j]);
                         (tri_ray, TriangleRayF32::new(&tri_ray))
                     });
+                    let skip = leaving[index[j] as usize].prim_in(slot);
                     let mut found = None;
-                    mesh_leaf::<true>(mesh, tri_ray, ray32, tris, 0.0, t_max, &mut found)
+                    mesh_leaf::<true>(mesh, (tri_ray, ray32), tris, 0.0, t_max, skip, &mut found)
                 });
         while blocked != 0 {
             let j = blocked.trailing_zeros() as usize;
@@ -928,7 +1020,11 @@ impl World {
             .filter(|&slot| !self.skips(slot as usize, leaving));
         // A mesh's remembered triangle first: one exact test, where the mesh's walk would
         // make dozens (neighbouring samples' rays mostly pass the same triangle).
-        if remembered.is_some_and(|slot| self.mesh_triangle_blocks(slot, cache.prim, ray, t_max)) {
+        // (Never the triangle the ray leaves, which the walk skips.)
+        if remembered.is_some_and(|slot| {
+            cache.prim != leaving.prim_in(slot as usize)
+                && self.mesh_triangle_blocks(slot, cache.prim, ray, t_max)
+        }) {
             return true;
         }
         let mut world_tri_ray = None;
@@ -937,15 +1033,21 @@ impl World {
                 return false;
             }
             // The one object is all the walk would test.
-            let hit = self.hit_object::<true>(0, ray, 0.0, t_max, &mut world_tri_ray);
+            let hit =
+                self.hit_object::<true>(0, ray, 0.0, t_max, leaving.prim_in(0), &mut world_tri_ray);
             cache.last = hit.map(|_| 0);
             cache.prim = hit.map_or(0, |h| h.prim);
             return hit.is_some();
         }
         if let Some(slot) = remembered {
-            if let Some(hit) =
-                self.hit_object::<true>(slot as usize, ray, 0.0, t_max, &mut world_tri_ray)
-            {
+            if let Some(hit) = self.hit_object::<true>(
+                slot as usize,
+                ray,
+                0.0,
+                t_max,
+                leaving.prim_in(slot as usize),
+                &mut world_tri_ray,
+            ) {
                 cache.prim = hit.prim;
                 return true;
             }
@@ -956,7 +1058,14 @@ impl World {
             if self.skips(slot, leaving) {
                 return false;
             }
-            let hit = self.hit_object::<true>(slot, ray, 0.0, *t_max, &mut world_tri_ray);
+            let hit = self.hit_object::<true>(
+                slot,
+                ray,
+                0.0,
+                *t_max,
+                leaving.prim_in(slot),
+                &mut world_tri_ray,
+            );
             if let Some(hit) = hit {
                 blocker = Some((slot as u32, hit.prim));
             }
@@ -993,6 +1102,7 @@ impl World {
         ray: &Ray,
         t_min: f64,
         t_max: f64,
+        skip_prim: u32,
         world_tri_ray: &mut Option<TriangleRay>,
     ) -> Option<ObjectHit> {
         match self.objects[slot] {
@@ -1031,7 +1141,15 @@ impl World {
                 let mut found = None;
                 let mut limit = t_max;
                 let leaf = |tris: std::ops::Range<usize>, t_max: &mut f64| {
-                    mesh_leaf::<ANY>(mesh, &tri_ray, &ray32, tris, t_min, t_max, &mut found)
+                    mesh_leaf::<ANY>(
+                        mesh,
+                        (&tri_ray, &ray32),
+                        tris,
+                        t_min,
+                        t_max,
+                        skip_prim,
+                        &mut found,
+                    )
                 };
                 if ANY {
                     mesh.bvh.traverse_any(&local, &mut limit, leaf);
@@ -1110,7 +1228,7 @@ impl World {
     /// nothing (eye rays, and every ray of a mesh-only scene) read nothing.
     #[inline(always)]
     fn skips(&self, slot: usize, leaving: Leaving) -> bool {
-        leaving != Leaving::NOTHING && self.slot_surface[slot] == leaving.0
+        leaving.surface != Leaving::NOTHING.surface && self.slot_surface[slot] == leaving.surface
     }
 
     /// What a ray spawned off the surface at `hit` leaves (see [`Leaving`]), `outward` where
@@ -1119,6 +1237,11 @@ impl World {
     pub fn leaving(&self, hit: &Hit, outward: bool) -> Leaving {
         let slot = hit.object as usize;
         match self.slot_surface[slot] {
+            // A mesh triangle is flat: a ray off it to either side cannot meet it again.
+            NO_SURFACE if matches!(self.objects[slot], Object::Model(_)) => Leaving {
+                surface: Leaving::NOTHING.surface,
+                mesh_triangle: (hit.object, hit.prim),
+            },
             NO_SURFACE => Leaving::NOTHING,
             // A ray into a sphere meets its far side.
             _ if !outward
@@ -1129,7 +1252,10 @@ impl World {
             {
                 Leaving::NOTHING
             }
-            surface => Leaving(surface),
+            surface => Leaving {
+                surface,
+                mesh_triangle: NO_MESH_TRIANGLE,
+            },
         }
     }
 
@@ -1315,14 +1441,17 @@ fn keep_nearer(best: &mut Option<Hit>, t_max: &mut f64, slot: usize, h: ObjectHi
 #[inline(always)]
 fn mesh_leaf<const ANY: bool>(
     mesh: &Mesh,
-    tri_ray: &TriangleRay,
-    ray32: &TriangleRayF32,
+    (tri_ray, ray32): (&TriangleRay, &TriangleRayF32),
     tris: std::ops::Range<usize>,
     t_min: f64,
     t_max: &mut f64,
+    skip_prim: u32,
     found: &mut Option<ObjectHit>,
 ) -> bool {
     any_candidate(&mesh.blocks, &mesh.corners, ray32, tris, |tri| {
+        if tri as u32 == skip_prim {
+            return false;
+        }
         let [a, b, c] = mesh.corners[tri];
         let bound = if ANY {
             *t_max
@@ -1890,6 +2019,100 @@ mod tests {
     }
 
     #[test]
+    fn rays_leaving_a_mesh_triangle_skip_it_and_find_the_same_hits() {
+        // Bumpy grids (rays off a bump meet the next one), two instances of one mesh (a ray
+        // leaving one instance's triangle k must still meet the other's), near the origin,
+        // small and far from it; and one model alone (the one-object paths).
+        let mut next = crate::test_rng::uniform(31);
+        let alone = World::with_movers(
+            vec![],
+            vec![],
+            vec![grid_mesh(40, |x, y| {
+                0.08 * (17.0 * x).sin() * (11.0 * y).cos()
+            })],
+            vec![Model {
+                transform: Transform::new(
+                    DVec3::new(-0.5, -0.5, -1.5),
+                    glam::DQuat::from_rotation_x(-0.6),
+                    DVec3::ONE,
+                ),
+                mesh: 0,
+                material: 0,
+            }],
+            vec![],
+            (0.0, 0.0),
+        );
+        let worlds = [
+            (packet_world(1.0, DVec3::ZERO), DVec3::ZERO),
+            (
+                packet_world(1e-3, DVec3::new(3e3, -2e3, 1e3)),
+                DVec3::new(3e3, -2e3, 1e3),
+            ),
+            (alone, DVec3::ZERO),
+        ];
+        for (w, (world, offset)) in worlds.iter().enumerate() {
+            let camera = test_camera(*offset);
+            let (mut left_mesh, mut met_own_model, mut blocked) = (0, 0, 0);
+            let (mut packet, mut limits, mut leavings) = (Vec::new(), Vec::new(), Vec::new());
+            for _ in 0..20_000 {
+                let eye = camera.ray(next() * 64.0, next() * 48.0, 64.0, 48.0);
+                let Some(hit) = world.intersect(&eye, 0.0, f64::INFINITY) else {
+                    continue;
+                };
+                let p = eye.at(hit.t);
+                let n = world.patch(&eye, &hit).geometric_normal;
+                let error_scale = p.abs().max_element() + hit.t;
+                // Mostly grazing directions, to either side: they meet the next bump.
+                let dir = (DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5)
+                    + n * (next() - 0.5) * 0.3)
+                    .normalize();
+                let leaving = world.leaving(&hit, dir.dot(n) > 0.0);
+                if leaving.prim_in(hit.object as usize) == hit.prim {
+                    left_mesh += 1;
+                }
+                let spawned = crate::shade::spawn_ray(p, n, dir, error_scale, 0.0);
+                let walked = world.intersect(&spawned, 0.0, f64::INFINITY);
+                let skipping = world.intersect_leaving(&spawned, 0.0, f64::INFINITY, leaving);
+                assert!(
+                    same_hit(walked, skipping),
+                    "world {w}: {walked:?} against {skipping:?}"
+                );
+                met_own_model += walked.is_some_and(|h| h.object == hit.object) as u32;
+                for t_max in [0.05, 10.0] {
+                    let t_max = t_max * error_scale.max(1e-3);
+                    let alone = world.occluded(&spawned, t_max);
+                    assert_eq!(alone, world.occluded_leaving(&spawned, t_max, leaving));
+                    let mut cache = ShadowCache::default();
+                    assert_eq!(
+                        alone,
+                        world.occluded_by(&spawned, t_max, &mut cache, leaving)
+                    );
+                    blocked += alone as u32;
+                    packet.push(spawned);
+                    limits.push(t_max);
+                    leavings.push(leaving);
+                }
+                if packet.len() == PACKET {
+                    let mut found = [false; PACKET];
+                    world.occluded_packet(&packet, &limits, &leavings, &mut found);
+                    for (i, ray) in packet.iter().enumerate() {
+                        assert_eq!(found[i], world.occluded(ray, limits[i]), "world {w}");
+                    }
+                    packet.clear();
+                    limits.clear();
+                    leavings.clear();
+                }
+            }
+            assert!(left_mesh > 3000, "world {w}: {left_mesh} rays left a mesh");
+            assert!(
+                met_own_model > 250,
+                "world {w}: {met_own_model} rays met the model they left"
+            );
+            assert!(blocked > 1000, "world {w}: {blocked} shadow rays blocked");
+        }
+    }
+
+    #[test]
     fn a_ray_leaving_a_plane_meets_none_of_its_triangles() {
         // Even one that starts below the floor heading up: what it leaves is the caller's word.
         let floor = |x: f64| WorldTriangle {
@@ -2372,7 +2595,7 @@ mod tests {
                     limits.push(t_max);
                 }
                 let mut found = vec![false; n];
-                world.occluded_packet(&rays, &limits, &mut found);
+                world.occluded_packet(&rays, &limits, &vec![Leaving::NOTHING; n], &mut found);
                 for i in 0..n {
                     let alone = world.occluded(&rays[i], limits[i]);
                     assert_eq!(found[i], alone, "scale {scale}, packet {k}, ray {i} of {n}");
@@ -2385,7 +2608,7 @@ mod tests {
                 "scale {scale}: {blocked} blocked, {open} open"
             );
         }
-        worlds[0].2.occluded_packet(&[], &[], &mut []);
+        worlds[0].2.occluded_packet(&[], &[], &[], &mut []);
     }
 
     #[test]
