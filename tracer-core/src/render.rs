@@ -354,7 +354,9 @@ impl RowShader<'_> {
         // A pixel's eye rays share an origin and stay within its frustum, whatever their
         // strata: the top-level slots the frustum meets are found once per pixel, and each eye
         // ray tests just those instead of traversing.
-        let frustum = match eye.pixel_frustum(x, self.y) {
+        let pixel_frustum = eye.pixel_frustum(x, self.y);
+        self.tracer.start_pixel(pixel_frustum);
+        let frustum = match pixel_frustum {
             Some((origin, planes)) => {
                 self.world.frustum_slots(origin, &planes, &mut self.slots);
                 Some(&self.slots[..])

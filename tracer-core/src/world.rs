@@ -638,6 +638,51 @@ impl World {
         });
     }
 
+    /// The axis-aligned plane (axis, coordinate) of the scene triangle `hit` lies on, where
+    /// every corner's normal is that plane's (see [`World::mirror_slots`]); None elsewhere.
+    #[inline]
+    pub fn mirror_plane(&self, hit: &Hit) -> Option<(usize, f64)> {
+        let Object::Triangle(i) = self.objects[hit.object as usize] else {
+            return None;
+        };
+        let t = &self.triangles[i as usize];
+        let n = t.normals[0];
+        let axis = (0..3).find(|&a| n[a] != 0.0)?;
+        let along_axis = (0..3).all(|a| a == axis || n[a] == 0.0);
+        let c = t.positions[0][axis];
+        let flat = t.positions.iter().all(|p| p[axis] == c) && t.normals.iter().all(|m| *m == n);
+        (along_axis && flat).then_some((axis, c))
+    }
+
+    /// The top-level slots that mirror rays off the plane `(axis, c)` (a
+    /// [`World::mirror_plane`]) may meet, into `slots`, for the eye rays of the pixel frustum
+    /// `eye` (apex and inward plane normals, as for [`World::frustum_slots`]) that hit it.
+    ///
+    /// On such a plane the shading normal is the unit axis, and `reflect` about it negates one
+    /// coordinate of the eye ray's direction, exactly. So every mirror ray of the pixel lies on
+    /// a line from the eye's mirror image through the mirrored frustum, beyond the plane: the
+    /// mirrored frustum's slots, less what a ray leaving the plane skips (`leaving`), hold
+    /// every object such a ray can meet, and [`World::intersect_among`] over them finds the
+    /// hit [`World::intersect_leaving`] does. A mirror ray's origin differs from the exact
+    /// point by its rounding and its offset off the plane, far inside the frustum's twentieth
+    /// of a pixel.
+    pub fn mirror_slots(
+        &self,
+        (axis, c): (usize, f64),
+        (apex, planes): (DVec3, &[DVec3; 4]),
+        leaving: Leaving,
+        slots: &mut Vec<u32>,
+    ) {
+        let mut mirrored_apex = apex;
+        mirrored_apex[axis] = 2.0 * c - apex[axis];
+        let mirrored_planes = planes.map(|mut n| {
+            n[axis] = -n[axis];
+            n
+        });
+        self.frustum_slots(mirrored_apex, &mirrored_planes, slots);
+        slots.retain(|&slot| !self.skips(slot as usize, leaving));
+    }
+
     /// Whether the object in `slot`, whose box meets the frustum, may itself: false when a
     /// sphere or triangle lies wholly behind one of the planes. A box takes in much that its
     /// object does not (a rotated ellipsoid's corners, a slanted triangle's half), and a
@@ -2109,6 +2154,133 @@ mod tests {
                 "world {w}: {met_own_model} rays met the model they left"
             );
             assert!(blocked > 1000, "world {w}: {blocked} shadow rays blocked");
+        }
+    }
+
+    #[test]
+    fn mirror_rays_off_a_plane_meet_among_its_mirror_slots_what_the_walk_meets() {
+        // A floor on y = 0 and a wall on x = 3 (axis-aligned, flat normals), a floor patch
+        // with tilted normals (no mirror plane), spheres, tilted triangles and a bumpy mesh
+        // model above them, near the origin and far from it at a small scale.
+        let mut next = crate::test_rng::uniform(37);
+        for (scale, offset) in [(1.0, DVec3::ZERO), (1e-3, DVec3::new(3e3, -2e3, 1e3))] {
+            let at = |p: DVec3| offset + p * scale;
+            let tri = |a: DVec3, b: DVec3, c: DVec3, normal: DVec3| WorldTriangle {
+                positions: [at(a), at(b), at(c)],
+                normals: [normal; 3],
+                tex_coords: [DVec2::ZERO; 3],
+                materials: [0; 3],
+            };
+            let mut triangles = Vec::new();
+            for j in 0..6 {
+                for i in 0..6 {
+                    let o = DVec3::new(i as f64 - 3.0, 0.0, j as f64 - 5.0);
+                    let normal = if (i, j) == (2, 3) {
+                        DVec3::new(0.1, 1.0, 0.0).normalize()
+                    } else {
+                        DVec3::Y
+                    };
+                    triangles.push(tri(o, o + DVec3::Z, o + DVec3::X + DVec3::Z, normal));
+                    triangles.push(tri(o, o + DVec3::X + DVec3::Z, o + DVec3::X, normal));
+                }
+            }
+            let w = DVec3::new(3.0, 0.0, -5.0);
+            triangles.push(tri(w, w + DVec3::Y * 3.0, w + DVec3::Z * 6.0, -DVec3::X));
+            for _ in 0..8 {
+                let c = DVec3::new(next() * 5.0 - 2.5, next() * 2.0 + 0.3, next() * 5.0 - 4.5);
+                let mut corner = || c + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+                triangles.push(tri(corner(), corner(), corner(), DVec3::Y));
+            }
+            let spheres = (0..5)
+                .map(|i| Sphere {
+                    transform: Transform::new(
+                        at(DVec3::new(
+                            next() * 5.0 - 2.5,
+                            next() * 2.0 + 0.4,
+                            next() * 4.0 - 4.0,
+                        )),
+                        glam::DQuat::IDENTITY,
+                        DVec3::ONE,
+                    ),
+                    radius: (0.2 + next() * 0.3) * scale,
+                    material: i,
+                })
+                .collect();
+            let models = vec![Model {
+                transform: Transform::new(
+                    at(DVec3::new(-1.0, 0.8, -3.0)),
+                    glam::DQuat::from_rotation_x(-1.2),
+                    DVec3::splat(1.5 * scale),
+                ),
+                mesh: 0,
+                material: 0,
+            }];
+            let mesh = grid_mesh(20, |x, y| 0.1 * (9.0 * x).sin() * (7.0 * y).cos());
+            let world =
+                World::with_movers(spheres, triangles, vec![mesh], models, vec![], (0.0, 0.0));
+            let camera = crate::camera::Camera::from_orientation(
+                at(DVec3::new(0.0, 1.5, 1.5)),
+                glam::DQuat::from_rotation_x(-0.45),
+                1.2,
+                0.0,
+                f64::INFINITY,
+                4.0 / 3.0,
+            );
+            let (w, h) = (48u32, 36u32);
+            let mut slots = Vec::new();
+            let (mut checked, mut hits, mut empty, mut kept) = (0, 0, 0, 0);
+            for y in 0..h {
+                for x in 0..w {
+                    let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
+                    let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
+                    for k in 0..6 {
+                        let (jx, jy) = if k < 2 {
+                            (k as f64, k as f64)
+                        } else {
+                            (next(), next())
+                        };
+                        let eye = camera.ray(x as f64 + jx, y as f64 + jy, w as f64, h as f64);
+                        let Some(hit) = world.intersect(&eye, 0.0, f64::INFINITY) else {
+                            continue;
+                        };
+                        let Some(plane) = world.mirror_plane(&hit) else {
+                            continue;
+                        };
+                        // Spawned as shading spawns a perfect mirror ray.
+                        let s = world.patch(&eye, &hit);
+                        let n = crate::shade::toward_viewer(s.normal, eye.dir);
+                        let dir = crate::shade::reflect(eye.dir, n);
+                        let error_scale = eye.at(hit.t).abs().max_element() + hit.t;
+                        let mirror = crate::shade::spawn_ray(
+                            s.position,
+                            s.geometric_normal,
+                            dir,
+                            error_scale,
+                            0.0,
+                        );
+                        let leaving = world.leaving(&hit, dir.dot(s.geometric_normal) > 0.0);
+                        world.mirror_slots(plane, (camera.position, &planes), leaving, &mut slots);
+                        let walked = world.intersect_leaving(&mirror, 0.0, f64::INFINITY, leaving);
+                        let among = world.intersect_among(&mirror, 0.0, f64::INFINITY, &slots);
+                        assert!(
+                            same_hit(walked, among),
+                            "scale {scale}, pixel ({x}, {y}): {walked:?} against {among:?}"
+                        );
+                        checked += 1;
+                        hits += walked.is_some() as u32;
+                        empty += slots.is_empty() as u32;
+                        kept += slots.len();
+                    }
+                }
+            }
+            assert!(checked > 3000, "scale {scale}: {checked} mirror rays");
+            assert!(hits > 300, "scale {scale}: {hits} mirror rays hit");
+            assert!(empty > 300, "scale {scale}: {empty} with no slot");
+            // Of 87 objects, fewer than one slot a ray on average.
+            assert!(
+                kept < checked,
+                "scale {scale}: {kept} slots for {checked} rays"
+            );
         }
     }
 

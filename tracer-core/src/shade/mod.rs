@@ -72,8 +72,9 @@ impl Stage<'_> {
 pub enum Eye<'s> {
     /// By the top-level walk ([`World::intersect`]), as every later ray does.
     Walk,
-    /// Among these top-level slots, every one the eye ray can hit (its pixel's
-    /// [`World::frustum_slots`]), without a traversal ([`World::intersect_among`]).
+    /// Among these top-level slots, every one the ray can hit (an eye ray's pixel's
+    /// [`World::frustum_slots`], a mirror ray's [`World::mirror_slots`]), without a traversal
+    /// ([`World::intersect_among`]).
     Among(&'s [u32]),
     /// Already found, the same hit either query gives (traced in a packet with other eye
     /// rays, [`World::intersect_packet`]).
@@ -102,6 +103,18 @@ pub struct Tracer<'a> {
     /// level of neighbouring samples lie close together, a level apart they do not), see
     /// [`World::occluded_by`].
     shadow: Vec<ShadowCache>,
+    mirrors: PixelMirrors,
+}
+
+/// The current pixel's eye frustum, and the top-level slots its eye rays' mirror rays off one
+/// axis-aligned plane may meet ([`World::mirror_slots`]), made for the first such ray.
+#[derive(Default)]
+struct PixelMirrors {
+    /// Apex and inward plane normals, as [`World::frustum_slots`] takes them.
+    eye: Option<(DVec3, [DVec3; 4])>,
+    /// The plane (axis, coordinate bits) and what its rays leave, that `slots` are for.
+    plane: Option<(usize, u64, Leaving)>,
+    slots: Vec<u32>,
 }
 
 /// Recursion levels with their own [`ShadowCache`] per light; deeper levels share the last.
@@ -116,7 +129,17 @@ impl<'a> Tracer<'a> {
             gloss_rng: Rng::for_sample(0, 0, 0, 0),
             outer: std::rc::Rc::new(MediumStack::new(stage.outer_ior)),
             shadow: vec![ShadowCache::default(); stage.lights.len() * SHADOW_LEVELS],
+            mirrors: PixelMirrors::default(),
         }
+    }
+
+    /// Starts a pixel whose eye rays all leave `apex` between the planes through it with
+    /// inward normals `planes` (its [`crate::camera::EyeRays::pixel_frustum`]), or None
+    /// where they do not share an origin. Mirror rays of its eye rays off axis-aligned planes
+    /// then test only the objects their frustum meets.
+    pub fn start_pixel(&mut self, frustum: Option<(DVec3, [DVec3; 4])>) {
+        self.mirrors.eye = frustum;
+        self.mirrors.plane = None;
     }
 
     /// The colour one pixel sample sees along the eye ray `ray` (unit direction), hits
@@ -259,6 +282,38 @@ impl<'a> Tracer<'a> {
                 let dir = glossy(reflect(d, n), n, s.glossiness, &mut self.gloss_rng);
                 let reflected =
                     spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
+                let leaving = leaving_toward(dir);
+                // An eye ray's perfect mirror ray off an axis-aligned plane: among its pixel's
+                // mirror slots (taken out of `self` while the ray is traced; deeper levels
+                // never read them).
+                let plane = match self.mirrors.eye {
+                    Some(_) if level == 0 && s.glossiness == 0.0 => stage.world.mirror_plane(hit),
+                    _ => None,
+                };
+                let Some((axis, c)) = plane else {
+                    color += tint
+                        * self.radiance(
+                            &reflected,
+                            0.0,
+                            f64::INFINITY,
+                            level + 1,
+                            media,
+                            rng,
+                            Eye::Walk,
+                            leaving,
+                        );
+                    return color;
+                };
+                let mut slots = std::mem::take(&mut self.mirrors.slots);
+                let key = Some((axis, c.to_bits(), leaving));
+                if self.mirrors.plane != key {
+                    if let Some((apex, planes)) = &self.mirrors.eye {
+                        stage
+                            .world
+                            .mirror_slots((axis, c), (*apex, planes), leaving, &mut slots);
+                    }
+                    self.mirrors.plane = key;
+                }
                 color += tint
                     * self.radiance(
                         &reflected,
@@ -267,9 +322,10 @@ impl<'a> Tracer<'a> {
                         level + 1,
                         media,
                         rng,
-                        Eye::Walk,
-                        leaving_toward(dir),
+                        Eye::Among(&slots),
+                        leaving,
                     );
+                self.mirrors.slots = slots;
             }
             return color;
         }
