@@ -284,36 +284,27 @@ impl<'a> Tracer<'a> {
                     spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
                 let leaving = leaving_toward(dir);
                 // An eye ray's perfect mirror ray off an axis-aligned plane: among its pixel's
-                // mirror slots (taken out of `self` while the ray is traced; deeper levels
-                // never read them).
+                // mirror slots, made for the first such ray (taken out of `self` while the
+                // ray is traced; deeper levels never read them).
                 let plane = match self.mirrors.eye {
                     Some(_) if level == 0 && s.glossiness == 0.0 => stage.world.mirror_plane(hit),
                     _ => None,
                 };
-                let Some((axis, c)) = plane else {
-                    color += tint
-                        * self.radiance(
-                            &reflected,
-                            0.0,
-                            f64::INFINITY,
-                            level + 1,
-                            media,
-                            rng,
-                            Eye::Walk,
-                            leaving,
-                        );
-                    return color;
-                };
-                let mut slots = std::mem::take(&mut self.mirrors.slots);
-                let key = Some((axis, c.to_bits(), leaving));
-                if self.mirrors.plane != key {
-                    if let Some((apex, planes)) = &self.mirrors.eye {
+                let mut slots = Vec::new();
+                if let (Some((axis, c)), Some((apex, planes))) = (plane, &self.mirrors.eye) {
+                    slots = std::mem::take(&mut self.mirrors.slots);
+                    let key = Some((axis, c.to_bits(), leaving));
+                    if self.mirrors.plane != key {
                         stage
                             .world
                             .mirror_slots((axis, c), (*apex, planes), leaving, &mut slots);
+                        self.mirrors.plane = key;
                     }
-                    self.mirrors.plane = key;
                 }
+                let eye = match plane {
+                    Some(_) => Eye::Among(&slots),
+                    None => Eye::Walk,
+                };
                 color += tint
                     * self.radiance(
                         &reflected,
@@ -322,10 +313,12 @@ impl<'a> Tracer<'a> {
                         level + 1,
                         media,
                         rng,
-                        Eye::Among(&slots),
+                        eye,
                         leaving,
                     );
-                self.mirrors.slots = slots;
+                if plane.is_some() {
+                    self.mirrors.slots = slots;
+                }
             }
             return color;
         }
