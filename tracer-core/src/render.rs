@@ -51,6 +51,10 @@ pub struct Renderer<'a> {
     /// sample without making its rays (always, but for the test that checks it changes no
     /// bit).
     skip_empty_pixels: bool,
+    /// Whether an eye ray's mirror ray off an axis-aligned plane is intersected among its
+    /// pixel's mirror slots ([`crate::world::World::mirror_slots`]) instead of walking
+    /// (always, but for the test that checks it changes no bit).
+    mirror_slots: bool,
 }
 
 /// One pixel's running sums: what a one-shot render accumulates, plus (when `ESTIMATE`) the
@@ -86,6 +90,7 @@ impl<'a> Renderer<'a> {
             order: SampleOrder::Grid,
             trace_by_stratum: true,
             skip_empty_pixels: true,
+            mirror_slots: true,
         })
     }
 
@@ -355,7 +360,8 @@ impl RowShader<'_> {
         // strata: the top-level slots the frustum meets are found once per pixel, and each eye
         // ray tests just those instead of traversing.
         let pixel_frustum = eye.pixel_frustum(x, self.y);
-        self.tracer.start_pixel(pixel_frustum);
+        self.tracer
+            .start_pixel(pixel_frustum.filter(|_| self.renderer.mirror_slots));
         let frustum = match pixel_frustum {
             Some((origin, planes)) => {
                 self.world.frustum_slots(origin, &planes, &mut self.slots);
@@ -539,6 +545,126 @@ mod tests {
     use std::path::PathBuf;
 
     use super::*;
+
+    #[test]
+    fn mirror_rays_among_their_pixels_slots_render_the_same_bits_as_walked() {
+        // A reflective floor, left wall and back wall meeting in a corner (pixels along the
+        // seams see two mirror planes, so the per-pixel slots must follow the plane), with
+        // spheres and a tilted triangle in front and in the reflections.
+        let vertex = |name: &str, material: &str, p: [f64; 3], n: [f64; 3]| {
+            format!(
+                r#"<vertex name="{name}" material="{material}"><position x="{}" y="{}" z="{}"/>
+                <normal x="{}" y="{}" z="{}"/><tex_coord u="0" v="0"/></vertex>"#,
+                p[0], p[1], p[2], n[0], n[1], n[2]
+            )
+        };
+        let quad = |name: &str, corners: [[f64; 3]; 4], n: [f64; 3]| {
+            let mut xml = String::new();
+            for (k, c) in corners.iter().enumerate() {
+                xml += &vertex(&format!("{name}{k}"), "mirror", *c, n);
+            }
+            for tri in [[0, 1, 2], [0, 2, 3]] {
+                xml += r#"<triangle material="mirror"><position x="0" y="0" z="0"/>"#;
+                for k in tri {
+                    xml += &format!(r#"<vertex name="{name}{k}"/>"#);
+                }
+                xml += "</triangle>";
+            }
+            xml
+        };
+        let floor = [
+            [-2.0, -1.0, 1.0],
+            [2.0, -1.0, 1.0],
+            [2.0, -1.0, -3.0],
+            [-2.0, -1.0, -3.0],
+        ];
+        let left = [
+            [-2.0, -1.0, 1.0],
+            [-2.0, -1.0, -3.0],
+            [-2.0, 2.0, -3.0],
+            [-2.0, 2.0, 1.0],
+        ];
+        let back = [
+            [-2.0, -1.0, -3.0],
+            [2.0, -1.0, -3.0],
+            [2.0, 2.0, -3.0],
+            [-2.0, 2.0, -3.0],
+        ];
+        let xml = format!(
+            r#"<scene>
+    <camera><fov v="1.0"/><near_clip v=".01"/><far_clip v="100"/>
+        <position x="1.2" y="0.6" z="3"/><orientation a="-0.35" x="0.3" y="1" z="0"/></camera>
+    <background_color r="0.2" g="0.3" b="0.5"/>
+    <refractive_index v="1"/>
+    <ambient_light r="0.2" g="0.2" b="0.2"/>
+    <point_light><position x="1" y="1.8" z="0"/><color r="1" g="1" b="1"/></point_light>
+    <material name="mirror"><diffuse r="0.5" g="0.4" b="0.3"/><specular r="0.6" g="0.6" b="0.6"/>
+        <refractive_index v="0"/></material>
+    <material name="red"><diffuse r="0.9" g="0.1" b="0.1"/><specular r="0.3" g="0.3" b="0.3"/>
+        <refractive_index v="0"/></material>
+    {}{}{}
+    <sphere material="red"><position x="-1" y="-0.4" z="-1.5"/><radius v="0.6"/></sphere>
+    <sphere material="red"><position x="0.6" y="0.5" z="-2.2"/><radius v="0.4"/></sphere>
+    {}{}{}
+    <triangle material="red"><position x="0" y="0" z="0"/>
+        <vertex name="t0"/><vertex name="t1"/><vertex name="t2"/></triangle>
+</scene>"#,
+            quad("f", floor, [0.0, 1.0, 0.0]),
+            quad("l", left, [1.0, 0.0, 0.0]),
+            quad("b", back, [0.0, 0.0, 1.0]),
+            vertex("t0", "red", [0.2, -0.9, -0.5], [0.0, 1.0, 0.0]),
+            vertex("t1", "red", [1.2, -0.9, -1.0], [0.0, 1.0, 0.0]),
+            vertex("t2", "red", [0.7, 0.3, -1.2], [0.0, 1.0, 0.0]),
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("corner.scene");
+        std::fs::write(&path, xml).unwrap();
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let settings = RenderSettings {
+            width: 48,
+            height: 36,
+            spp: 9,
+            ..RenderSettings::default()
+        };
+        let rect = TileRect::new(0, 0, 48, 36);
+        let never = AtomicBool::new(false);
+        let render = |mirror_slots: bool| {
+            let renderer = Renderer {
+                mirror_slots,
+                ..Renderer::new(&scene, &settings).unwrap()
+            };
+            let image = renderer.render_tile(rect, &never).unwrap();
+            let bits: Vec<u32> = image.pixels.iter().map(|p| p.to_bits()).collect();
+            (bits, renderer.rays_traced())
+        };
+        // The seams are in view: some pixels' eye rays meet two of the mirror planes.
+        let renderer = Renderer::new(&scene, &settings).unwrap();
+        let world = scene.world();
+        let seam_pixels = (0..36u32)
+            .flat_map(|y| (0..48u32).map(move |x| (x, y)))
+            .filter(|&(x, y)| {
+                let mut planes = Vec::new();
+                for sample in 0..9 {
+                    let eye = renderer.eye.sample(x, y, sample);
+                    let hit = world.intersect(&eye.ray, eye.near, eye.far);
+                    if let Some(plane) = hit.and_then(|h| world.mirror_plane(&h)) {
+                        if !planes.contains(&plane) {
+                            planes.push(plane);
+                        }
+                    }
+                }
+                planes.len() >= 2
+            })
+            .count();
+        assert!(
+            seam_pixels > 10,
+            "{seam_pixels} pixels see two mirror planes"
+        );
+        assert!(
+            render(true) == render(false),
+            "mirror slots changed the render"
+        );
+    }
 
     #[test]
     fn pixels_whose_frustum_meets_nothing_sum_the_same_bits_without_their_rays() {
