@@ -626,13 +626,27 @@ impl World {
     /// inward normals `planes` may hit (see [`crate::camera::EyeRays::pixel_frustum`]), into
     /// `slots`, for [`World::intersect_among`].
     pub fn frustum_slots(&self, origin: DVec3, planes: &[DVec3; 4], slots: &mut Vec<u32>) {
+        self.frustum_slots_leaving(origin, planes, Leaving::NOTHING, slots);
+    }
+
+    /// [`World::frustum_slots`] less the slots a ray leaving `leaving` skips (which are not
+    /// tested against the frustum at all).
+    fn frustum_slots_leaving(
+        &self,
+        origin: DVec3,
+        planes: &[DVec3; 4],
+        leaving: Leaving,
+        slots: &mut Vec<u32>,
+    ) {
         slots.clear();
         // A single object too: pixels whose frustum misses its box (most of dragon.scene's)
         // then test nothing at all.
         self.top_level.frustum(origin, planes, &mut |range| {
             slots.extend(
                 range
-                    .filter(|&slot| self.may_meet_frustum(slot, origin, planes))
+                    .filter(|&slot| {
+                        !self.skips(slot, leaving) && self.may_meet_frustum(slot, origin, planes)
+                    })
                     .map(|s| s as u32),
             )
         });
@@ -679,8 +693,7 @@ impl World {
             n[axis] = -n[axis];
             n
         });
-        self.frustum_slots(mirrored_apex, &mirrored_planes, slots);
-        slots.retain(|&slot| !self.skips(slot as usize, leaving));
+        self.frustum_slots_leaving(mirrored_apex, &mirrored_planes, leaving, slots);
     }
 
     /// Whether the object in `slot`, whose box meets the frustum, may itself: false when a
@@ -2069,23 +2082,10 @@ mod tests {
         // leaving one instance's triangle k must still meet the other's), near the origin,
         // small and far from it; and one model alone (the one-object paths).
         let mut next = crate::test_rng::uniform(31);
-        let alone = World::with_movers(
-            vec![],
-            vec![],
-            vec![grid_mesh(40, |x, y| {
-                0.08 * (17.0 * x).sin() * (11.0 * y).cos()
-            })],
-            vec![Model {
-                transform: Transform::new(
-                    DVec3::new(-0.5, -0.5, -1.5),
-                    glam::DQuat::from_rotation_x(-0.6),
-                    DVec3::ONE,
-                ),
-                mesh: 0,
-                material: 0,
-            }],
-            vec![],
-            (0.0, 0.0),
+        let alone = lone_model(
+            grid_mesh(40, |x, y| 0.08 * (17.0 * x).sin() * (11.0 * y).cos()),
+            DVec3::new(-0.5, -0.5, -1.5),
+            -0.6,
         );
         let worlds = [
             (packet_world(1.0, DVec3::ZERO), DVec3::ZERO),
@@ -2316,6 +2316,16 @@ mod tests {
             .is_none());
         assert!(world.occluded(&up, 5.0));
         assert!(!world.occluded_by(&up, 5.0, &mut ShadowCache::default(), leaving));
+    }
+
+    /// A world of `mesh` alone, as one model at `position` turned by `tilt` about x.
+    fn lone_model(mesh: Mesh, position: DVec3, tilt: f64) -> World {
+        let model = Model {
+            transform: Transform::new(position, glam::DQuat::from_rotation_x(tilt), DVec3::ONE),
+            mesh: 0,
+            material: 0,
+        };
+        World::with_movers(vec![], vec![], vec![mesh], vec![model], vec![], (0.0, 0.0))
     }
 
     /// A `n`×`n` grid of squares over [0, 1]² (two triangles each) at height `bump(x, y)`.
@@ -2687,23 +2697,10 @@ mod tests {
             worlds.push((scale, offset, world));
         }
         // And a world of one model, which skips the top level.
-        let single = World::with_movers(
-            vec![],
-            vec![],
-            vec![grid_mesh(40, |x, y| {
-                0.3 * (9.0 * x).sin() * (7.0 * y).cos()
-            })],
-            vec![Model {
-                transform: Transform::new(
-                    DVec3::new(-0.5, -0.5, -2.0),
-                    glam::DQuat::from_rotation_x(-0.2),
-                    DVec3::ONE,
-                ),
-                mesh: 0,
-                material: 0,
-            }],
-            vec![],
-            (0.0, 0.0),
+        let single = lone_model(
+            grid_mesh(40, |x, y| 0.3 * (9.0 * x).sin() * (7.0 * y).cos()),
+            DVec3::new(-0.5, -0.5, -2.0),
+            -0.2,
         );
         assert_eq!(single.objects.len(), 1);
         worlds.push((1.0, DVec3::ZERO, single));
