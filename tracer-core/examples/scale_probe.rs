@@ -66,7 +66,7 @@ fn print_hashes(world: &World) {
             node.index.hash(&mut h);
             node.count.hash(&mut h);
         }
-        for v in mesh.corners.iter().flatten() {
+        for v in (0..mesh.slots()).flat_map(|s| mesh.corners(s)) {
             for x in v.to_array() {
                 x.to_bits().hash(&mut h);
             }
@@ -75,7 +75,7 @@ fn print_hashes(world: &World) {
         println!(
             "mesh {i}: {} nodes, {} slots, depth {}, hash {:016x}",
             mesh.bvh.nodes.len(),
-            mesh.corners.len(),
+            mesh.slots(),
             mesh.bvh.depth(),
             h.finish()
         );

@@ -34,49 +34,108 @@ pub struct WorldTriangle {
 /// starting a block of four (gaps are padding slots, never reached).
 #[derive(Clone, Debug)]
 pub struct Mesh {
-    pub corners: Vec<[DVec3; 3]>,
+    pub corners: Corners,
     pub indices: Vec<[u32; 3]>,
     pub normals: Vec<DVec3>,
     pub tex_coords: Vec<DVec2>,
     pub bvh: Bvh,
-    /// `corners` in f32 blocks for the traversal's pre-test.
+    /// The triangles' corners in f32 blocks for the traversal's pre-test.
     pub blocks: Vec<TriangleBlock>,
+    /// Whether the mesh outgrows the last-level cache (see [`LARGE_MESH_FROM`]).
+    pub large: bool,
+}
+
+/// Where the exact triangle test finds a mesh's corners.
+#[derive(Clone, Debug)]
+pub enum Corners {
+    /// In the f32 blocks themselves: the mesh's vertices are f32 values (see [`Mesh::new`]),
+    /// so the blocks hold its corners exactly and the leaf test reads nothing else.
+    InBlocks,
+    /// In f64 by slot, for a mesh with a coordinate that f32 cannot hold to its relative
+    /// precision (beyond its range, or below its normal numbers).
+    Inline(Vec<[DVec3; 3]>),
 }
 
 impl Mesh {
+    /// The mesh of these vertices and triangles. Its positions are rounded to f32 where every
+    /// coordinate is zero or within f32's normal range (as Embree and pbrt-v4 store
+    /// vertices): a change below the 7 significant digits OBJ files carry, which cuts what a
+    /// ray reads in a leaf from 112 bytes a triangle to the f32 block's 40 (the f64 corners
+    /// were the other 72). The exact f64 triangle test runs on those values, and a vertex
+    /// shared by two triangles is rounded alike in both, so hits stay watertight.
     pub fn new(
         positions: &[DVec3],
         normals: Vec<DVec3>,
         tex_coords: Vec<DVec2>,
         triangles: &[[u32; 3]],
     ) -> Mesh {
-        let corners: Vec<[DVec3; 3]> = triangles
+        let in_blocks = positions
             .iter()
-            .map(|t| t.map(|i| positions[i as usize]))
-            .collect();
-        Mesh::in_leaf_order(&corners, triangles, normals, tex_coords)
+            .all(|p| p.to_array().into_iter().all(fits_f32));
+        let corner_of = |i: usize| {
+            triangles[i].map(|v| {
+                let p = positions[v as usize];
+                if in_blocks {
+                    p.as_vec3().as_dvec3()
+                } else {
+                    p
+                }
+            })
+        };
+        Mesh::in_leaf_order(&corner_of, triangles, in_blocks, normals, tex_coords)
     }
 
-    /// Bytes of the triangle data rays read in its leaves: f32 blocks and f64 corners.
+    /// The f64 corners of triangle slot `slot` (zeros for a padding slot).
+    #[inline(always)]
+    pub fn corners(&self, slot: usize) -> [DVec3; 3] {
+        match &self.corners {
+            Corners::InBlocks => self.blocks[slot / BLOCK].corners(slot % BLOCK),
+            Corners::Inline(corners) => corners[slot],
+        }
+    }
+
+    /// Triangle slots, padding included.
+    pub fn slots(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// Bytes of the triangle data rays read in its leaves: f32 blocks and any f64 corners.
     pub fn leaf_bytes(&self) -> usize {
-        size_of_val(&self.blocks[..]) + size_of_val(&self.corners[..])
+        size_of_val(&self.blocks[..])
+            + match &self.corners {
+                Corners::InBlocks => 0,
+                Corners::Inline(corners) => size_of_val(&corners[..]),
+            }
+    }
+
+    /// Starts fetching what the exact test of slots `tris` reads (a hint: nothing is read).
+    #[inline(always)]
+    fn prefetch_leaf(&self, tris: std::ops::Range<usize>) {
+        match &self.corners {
+            Corners::InBlocks => prefetch_blocks(&self.blocks, tris),
+            Corners::Inline(corners) => prefetch_leaf(&self.blocks, corners, tris),
+        }
     }
 
     /// The same mesh with its BVH built again from scratch (benchmarks time this).
     pub fn rebuilt(&self) -> Mesh {
+        let in_blocks = matches!(self.corners, Corners::InBlocks);
         Mesh::in_leaf_order(
-            &self.corners,
+            &|i| self.corners(i),
             &self.indices,
+            in_blocks,
             self.normals.clone(),
             self.tex_coords.clone(),
         )
     }
 
-    /// Builds the BVH over `corners` (padding slots are skipped) and stores the triangles in
-    /// its leaf order.
+    /// Builds the BVH over the triangles `indices` (padding slots are skipped), whose f64
+    /// corners `corner_of` gives, and stores them in its leaf order: f32 blocks, and f64
+    /// corners unless `in_blocks` (the corners are f32 values, the blocks hold them).
     fn in_leaf_order(
-        corners: &[[DVec3; 3]],
+        corner_of: &(dyn Fn(usize) -> [DVec3; 3] + Sync),
         indices: &[[u32; 3]],
+        in_blocks: bool,
         normals: Vec<DVec3>,
         tex_coords: Vec<DVec2>,
     ) -> Mesh {
@@ -86,7 +145,7 @@ impl Mesh {
             .collect();
         let bounds: Vec<Aabb> = live
             .par_iter()
-            .map(|&i| Aabb::from_points(&corners[i as usize]))
+            .map(|&i| Aabb::from_points(&corner_of(i as usize)))
             .collect();
         let mut bvh = Bvh::build_aligned(&bounds, BLOCK);
         drop(bounds);
@@ -99,40 +158,56 @@ impl Mesh {
                 PADDING => ([DVec3::ZERO; 3], PADDING_TRIANGLE),
                 o => {
                     let i = live[o as usize] as usize;
-                    (corners[i], indices[i])
+                    (corner_of(i), indices[i])
                 }
             })
             .unzip_into_vecs(&mut sorted, &mut sorted_indices);
-        let (corners, indices) = (sorted, sorted_indices);
         let mut blocks = with_capacity_huge(slots.div_ceil(BLOCK));
-        corners
+        sorted
             .par_chunks(BLOCK)
             .map(TriangleBlock::new)
             .collect_into_vec(&mut blocks);
         // The triangles are stored in leaf order now; the order itself is not needed again.
         bvh.order = Vec::new();
+        let corners = if in_blocks {
+            debug_assert!(sorted
+                .iter()
+                .enumerate()
+                .all(|(s, c)| blocks[s / BLOCK].corners(s % BLOCK) == *c));
+            Corners::InBlocks
+        } else {
+            Corners::Inline(sorted)
+        };
         let mut mesh = Mesh {
             corners,
-            indices,
+            indices: sorted_indices,
             normals,
             tex_coords,
             bvh,
             blocks,
+            large: false,
         };
-        if mesh.leaf_bytes() >= PREFETCH_LEAVES_FROM {
+        mesh.large = mesh.leaf_bytes() >= LARGE_MESH_FROM;
+        if mesh.large {
             mesh.bvh = std::mem::take(&mut mesh.bvh).with_spans();
         }
         mesh
     }
 }
 
-/// Meshes whose triangle data (f32 blocks and f64 corners) is at least this large have the
+/// Whether `v` rounded to f32 keeps f32's full relative precision: zero, or a finite value
+/// within the normal range (NaN and infinities stay f64, so they stay what they are).
+fn fits_f32(v: f64) -> bool {
+    v == 0.0 || (v.abs() >= f32::MIN_POSITIVE as f64 && v.abs() <= f32::MAX as f64)
+}
+
+/// Meshes whose leaf data (f32 blocks and any f64 corners) is at least this large have the
 /// leaves a packet reaches at a node prefetched before they are tested
 /// ([`Bvh::traverse_packet`]'s `fetch`): such a mesh outgrows the last-level cache, so each
-/// leaf is a DRAM miss, and the misses overlap. A smaller one mostly stays in cache, where
+/// leaf is a memory miss, and the misses overlap. A smaller one mostly stays in cache, where
 /// the prefetches are only instructions (the 100k-triangle dragon, 11 MB, ran 6-10% slower
 /// with them).
-const PREFETCH_LEAVES_FROM: usize = 32 << 20;
+const LARGE_MESH_FROM: usize = 32 << 20;
 
 /// A world box around an instance of `mesh`: the transformed boxes near the root of its BVH,
 /// joined, and cut to the transformed root box. A rotated instance's transformed root box
@@ -486,8 +561,9 @@ impl World {
                 let live =
                     (0..mesh.indices.len()).filter(|&slot| mesh.indices[slot] != PADDING_TRIANGLE);
                 for slot in live {
-                    let corners =
-                        mesh.corners[slot].map(|c| m.transform.to_world.transform_point3(c));
+                    let corners = mesh
+                        .corners(slot)
+                        .map(|c| m.transform.to_world.transform_point3(c));
                     objects.push(Object::ModelTriangle(model_triangles.len() as u32));
                     bounds.push(Aabb::from_points(&corners));
                     model_triangles.push(ModelTriangle {
@@ -861,9 +937,8 @@ impl World {
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
         let mut found: [Option<ObjectHit>; PACKET] = [None; PACKET];
-        let large = mesh.leaf_bytes() >= PREFETCH_LEAVES_FROM;
         let fetch = |tris, what| match what {
-            Fetch::Leaf if large => prefetch_leaf(&mesh.blocks, &mesh.corners, tris),
+            Fetch::Leaf if mesh.large => mesh.prefetch_leaf(tris),
             // The f64 corners of a whole subtree would be too many lines for the few a ray
             // tests.
             Fetch::Subtree => prefetch_blocks(&mesh.blocks, tris),
@@ -1034,9 +1109,8 @@ impl World {
         let local: &[Ray] = unsafe { std::slice::from_raw_parts(local.as_ptr().cast::<Ray>(), n) };
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
-        let large = mesh.leaf_bytes() >= PREFETCH_LEAVES_FROM;
         let fetch = |tris, what| match what {
-            Fetch::Leaf if large => prefetch_leaf(&mesh.blocks, &mesh.corners, tris),
+            Fetch::Leaf if mesh.large => mesh.prefetch_leaf(tris),
             // The f64 corners of a whole subtree would be too many lines for the few a ray
             // tests.
             Fetch::Subtree => prefetch_blocks(&mesh.blocks, tris),
@@ -1143,9 +1217,10 @@ impl World {
         };
         let model = &self.models[i as usize];
         let mesh = &self.meshes[model.mesh as usize];
-        let Some(&[a, b, c]) = mesh.corners.get(prim as usize) else {
+        if prim as usize >= mesh.slots() {
             return false;
-        };
+        }
+        let [a, b, c] = mesh.corners(prim as usize);
         let tri_ray = TriangleRay::new(&model.transform.ray_to_local(ray));
         intersect_triangle(&tri_ray, a, b, c, 0.0, t_max).is_some()
     }
@@ -1262,7 +1337,7 @@ impl World {
                 let mut limit = t_max;
                 mesh.bvh.traverse(&local, &mut limit, |tris, t_max| {
                     for tri in tris {
-                        let [a, b, c] = mesh.corners[tri];
+                        let [a, b, c] = mesh.corners(tri);
                         if let Some(h) = intersect_triangle(&tri_ray, a, b, c, t_min, *t_max) {
                             *t_max = h.t;
                             found = Some(ObjectHit {
@@ -1431,9 +1506,8 @@ fn mesh_meets_frustum(mesh: &Mesh, index: usize, apex: DVec3, planes: &[DVec3; 4
         let first = node.index[c] as usize;
         match node.count[c] {
             0 => mesh_meets_frustum(mesh, first, apex, planes),
-            count => mesh.corners[first..first + count as usize]
-                .iter()
-                .any(|corners| !triangle_behind_a_plane(corners, apex, planes)),
+            count => (first..first + count as usize)
+                .any(|slot| !triangle_behind_a_plane(&mesh.corners(slot), apex, planes)),
         }
     })
 }
@@ -1499,18 +1573,42 @@ fn keep_nearer(best: &mut Option<Hit>, t_max: &mut f64, slot: usize, h: ObjectHi
 #[inline(always)]
 fn mesh_leaf<const ANY: bool>(
     mesh: &Mesh,
-    (tri_ray, ray32): (&TriangleRay, &TriangleRayF32),
+    rays: (&TriangleRay, &TriangleRayF32),
     tris: std::ops::Range<usize>,
     t_min: f64,
     t_max: &mut f64,
     skip_prim: u32,
     found: &mut Option<ObjectHit>,
 ) -> bool {
-    any_candidate(&mesh.blocks, &mesh.corners, ray32, tris, |tri| {
+    // Each layout its own loop, so that reading a corner takes no branch.
+    let test = (t_min, t_max, skip_prim, found);
+    match &mesh.corners {
+        Corners::InBlocks => {
+            let corner_of = |tri: usize| mesh.blocks[tri / BLOCK].corners(tri % BLOCK);
+            leaf_candidates::<ANY>(mesh, &[], corner_of, rays, tris, test)
+        }
+        Corners::Inline(corners) => {
+            leaf_candidates::<ANY>(mesh, corners, |tri| corners[tri], rays, tris, test)
+        }
+    }
+}
+
+/// [`mesh_leaf`] over one corner layout: `corner_of` gives a slot's f64 corners, which
+/// `inline` holds where the blocks do not ([`any_candidate`]).
+#[inline(always)]
+fn leaf_candidates<const ANY: bool>(
+    mesh: &Mesh,
+    inline: &[[DVec3; 3]],
+    corner_of: impl Fn(usize) -> [DVec3; 3],
+    (tri_ray, ray32): (&TriangleRay, &TriangleRayF32),
+    tris: std::ops::Range<usize>,
+    (t_min, t_max, skip_prim, found): (f64, &mut f64, u32, &mut Option<ObjectHit>),
+) -> bool {
+    any_candidate(&mesh.blocks, inline, ray32, tris, |tri| {
         if tri as u32 == skip_prim {
             return false;
         }
-        let [a, b, c] = mesh.corners[tri];
+        let [a, b, c] = corner_of(tri);
         let bound = if ANY {
             *t_max
         } else {
@@ -1618,7 +1716,7 @@ fn model_patch<'a>(
 ) -> Patch<'a> {
     let [b0, b1, b2] = hit.bary;
     let [i0, i1, i2] = mesh.indices[hit.prim as usize].map(|i| i as usize);
-    let [p0, p1, p2] = mesh.corners[hit.prim as usize];
+    let [p0, p1, p2] = mesh.corners(hit.prim as usize);
     let geometric = xf.normal_to_world((p1 - p0).cross(p2 - p0));
     let local_n = b0 * mesh.normals[i0] + b1 * mesh.normals[i1] + b2 * mesh.normals[i2];
     let normal = xf.normal_to_world(local_n);
@@ -2077,6 +2175,104 @@ mod tests {
     }
 
     #[test]
+    fn mesh_vertices_are_held_as_f32_only_where_f32_keeps_their_precision() {
+        let triangle = [[0u32, 1, 2]];
+        let attributes = || (vec![DVec3::Z; 3], vec![DVec2::ZERO; 3]);
+        // Coordinates with more digits than f32 holds; a zero; and scales from f32's
+        // smallest normal numbers to its largest.
+        for (scale, fits) in [
+            (1.0, true),
+            (1e-30, true),
+            (1e30, true),
+            (1e-39, false),
+            (1e39, false),
+        ] {
+            let positions = [
+                DVec3::new(0.1, 0.2, 0.0),
+                DVec3::new(0.7, 0.3, 0.123_456_789_012),
+                DVec3::new(0.2, 0.9, -0.3),
+            ]
+            .map(|p| p * scale);
+            let (normals, tex_coords) = attributes();
+            let mesh = Mesh::new(&positions, normals, tex_coords, &triangle);
+            let slot = (0..mesh.slots())
+                .find(|&s| mesh.indices[s] == triangle[0])
+                .unwrap();
+            let held = if fits {
+                positions.map(|p| p.as_vec3().as_dvec3())
+            } else {
+                positions
+            };
+            assert_eq!(mesh.corners(slot), held, "scale {scale}");
+            assert_eq!(
+                matches!(mesh.corners, Corners::InBlocks),
+                fits,
+                "scale {scale}"
+            );
+            assert_ne!(
+                held[1].z,
+                positions[1].z * f64::from(fits),
+                "rounded where held as f32"
+            );
+        }
+    }
+
+    #[test]
+    fn corners_read_from_the_f32_blocks_find_the_hits_their_f64_copy_finds() {
+        // One bumpy mesh as `Mesh::new` stores it (corners in its blocks), and the same mesh,
+        // tree and slots with its vertices rounded to f32 in f64 corners (the layout of
+        // meshes that f32 cannot hold): every query must give the same bits.
+        let bump = |x: f64, y: f64| 0.08 * (17.0 * x).sin() * (11.0 * y).cos();
+        let in_blocks = grid_mesh(40, bump);
+        assert!(matches!(in_blocks.corners, Corners::InBlocks));
+        let (positions, _) = grid(40, bump);
+        let mut inline = in_blocks.clone();
+        let held = |tri: &[u32; 3]| match *tri {
+            PADDING_TRIANGLE => [DVec3::ZERO; 3],
+            tri => tri.map(|v| positions[v as usize].as_vec3().as_dvec3()),
+        };
+        inline.corners = Corners::Inline(inline.indices.iter().map(held).collect());
+        let place = (DVec3::new(-0.5, -0.5, -1.5), -0.6);
+        let worlds = [in_blocks, inline].map(|m| lone_model(m, place.0, place.1));
+        let camera = test_camera(DVec3::ZERO);
+        let mut next = crate::test_rng::uniform(47);
+        let (mut hits, mut blocked) = (0, 0);
+        for _ in 0..200 {
+            let rays: Vec<Ray> = (0..16)
+                .map(|_| camera.ray(next() * 64.0, next() * 48.0, 64.0, 48.0))
+                .collect();
+            let mut packets = [[None; 16]; 2];
+            for (world, found) in worlds.iter().zip(&mut packets) {
+                world.intersect_packet(&rays, 0.0, f64::INFINITY, None, found);
+            }
+            for (k, ray) in rays.iter().enumerate() {
+                let [a, b] = [&worlds[0], &worlds[1]].map(|w| w.intersect(ray, 0.0, f64::INFINITY));
+                assert!(same_hit(a, b), "{a:?} against {b:?}");
+                assert!(same_hit(a, packets[0][k]) && same_hit(a, packets[1][k]));
+                let Some(hit) = a else { continue };
+                hits += 1;
+                // Toward a point behind the grid, from just off the hit: some are blocked.
+                let p = ray.at(hit.t);
+                let n = worlds[0].patch(ray, &hit).geometric_normal;
+                let dir = (DVec3::new(next() - 0.5, next() - 0.5, -2.0) - p).normalize();
+                let spawned = crate::shade::spawn_ray(p, n, dir, p.abs().max_element(), 0.0);
+                let leaving = worlds[0].leaving(&hit, dir.dot(n) > 0.0);
+                let [x, y] =
+                    [&worlds[0], &worlds[1]].map(|w| w.occluded_leaving(&spawned, 3.0, leaving));
+                assert_eq!(x, y);
+                blocked += x as u32;
+                let [x, y] = [&worlds[0], &worlds[1]]
+                    .map(|w| w.intersect_leaving(&spawned, 0.0, f64::INFINITY, leaving));
+                assert!(same_hit(x, y), "{x:?} against {y:?}");
+            }
+        }
+        assert!(
+            hits > 400 && blocked > 100,
+            "{hits} hits, {blocked} blocked"
+        );
+    }
+
+    #[test]
     fn rays_leaving_a_mesh_triangle_skip_it_and_find_the_same_hits() {
         // Bumpy grids (rays off a bump meet the next one), two instances of one mesh (a ray
         // leaving one instance's triangle k must still meet the other's), near the origin,
@@ -2330,6 +2526,14 @@ mod tests {
 
     /// A `n`×`n` grid of squares over [0, 1]² (two triangles each) at height `bump(x, y)`.
     fn grid_mesh(n: usize, bump: impl Fn(f64, f64) -> f64) -> Mesh {
+        let (positions, triangles) = grid(n, bump);
+        let normals = vec![DVec3::Z; positions.len()];
+        let tex_coords = vec![DVec2::ZERO; positions.len()];
+        Mesh::new(&positions, normals, tex_coords, &triangles)
+    }
+
+    /// [`grid_mesh`]'s vertices and triangles.
+    fn grid(n: usize, bump: impl Fn(f64, f64) -> f64) -> (Vec<DVec3>, Vec<[u32; 3]>) {
         let mut positions = Vec::new();
         for j in 0..=n {
             for i in 0..=n {
@@ -2345,9 +2549,7 @@ mod tests {
                 triangles.push([v(i, j), v(i + 1, j + 1), v(i, j + 1)]);
             }
         }
-        let normals = vec![DVec3::Z; positions.len()];
-        let tex_coords = vec![DVec2::ZERO; positions.len()];
-        Mesh::new(&positions, normals, tex_coords, &triangles)
+        (positions, triangles)
     }
 
     /// For every pixel of a `size` image of `camera`: the pixel's frustum slots (its frustum
@@ -2808,10 +3010,10 @@ mod tests {
         }
         for ray in &rays {
             let tri_ray = TriangleRay::new(ray);
-            let brute = (0..mesh.corners.len())
+            let brute = (0..mesh.slots())
                 .filter(|&s| mesh.indices[s] != PADDING_TRIANGLE)
                 .filter_map(|s| {
-                    let [a, b, c] = mesh.corners[s];
+                    let [a, b, c] = mesh.corners(s);
                     intersect_triangle(&tri_ray, a, b, c, 0.0, f64::INFINITY).map(|h| (h.t, s))
                 })
                 .collect::<Vec<_>>();

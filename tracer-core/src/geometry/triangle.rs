@@ -127,6 +127,16 @@ impl TriangleBlock {
         }
         block
     }
+
+    /// The corners of lane `lane`'s triangle as f64: exactly the triangle's own where its
+    /// corners are f32 values (zeros for an empty lane).
+    #[inline(always)]
+    pub fn corners(&self, lane: usize) -> [DVec3; 3] {
+        std::array::from_fn(|k| {
+            let c = &self.corners[k];
+            DVec3::new(c[0][lane] as f64, c[1][lane] as f64, c[2][lane] as f64)
+        })
+    }
 }
 
 /// The smallest f32 not below `v`.
@@ -307,7 +317,8 @@ impl TriangleRayF32 {
 
 /// Calls `test` on each slot in `slots` whose triangle the f32 pre-test cannot rule out, in
 /// slot order, until it returns true (then returns true). `blocks[i]` holds slots 4i..4i+4,
-/// whose f64 corners `corners` holds (prefetched with the blocks, before the pre-test).
+/// whose f64 corners `corners` holds (prefetched with the blocks, before the pre-test), or
+/// is empty where the blocks hold the corners exactly ([`TriangleBlock::corners`]).
 #[inline(always)]
 pub fn any_candidate(
     blocks: &[TriangleBlock],
@@ -322,8 +333,9 @@ pub fn any_candidate(
     // The f64 corners of the whole leaf too, now rather than for the pre-test's survivors
     // once it is done: their load then overlaps the block's instead of following it (the
     // two misses in a row were most of the leaf's time for incoherent rays).
-    let leaf_corners = &corners[slots.start..slots.end.min(corners.len())];
-    prefetch(leaf_corners.as_ptr(), size_of_val(leaf_corners));
+    if let Some(leaf_corners) = corners.get(slots.clone()) {
+        prefetch(leaf_corners.as_ptr(), size_of_val(leaf_corners));
+    }
     for (b, block) in leaf_blocks.iter().enumerate() {
         let base = (first + b) * BLOCK;
         // Lanes inside `slots`.
