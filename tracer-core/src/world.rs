@@ -72,17 +72,15 @@ impl Mesh {
         let in_blocks = positions
             .iter()
             .all(|p| p.to_array().into_iter().all(fits_f32));
-        let corner_of = |i: usize| {
-            triangles[i].map(|v| {
-                let p = positions[v as usize];
-                if in_blocks {
-                    p.as_vec3().as_dvec3()
-                } else {
-                    p
-                }
-            })
+        let rounded: Vec<DVec3>;
+        let positions = if in_blocks {
+            rounded = positions.iter().map(|p| p.as_vec3().as_dvec3()).collect();
+            &rounded
+        } else {
+            positions
         };
-        Mesh::in_leaf_order(&corner_of, triangles, in_blocks, normals, tex_coords)
+        let corner_of = |i: usize| triangles[i].map(|v| positions[v as usize]);
+        Mesh::in_leaf_order(corner_of, triangles, in_blocks, normals, tex_coords)
     }
 
     /// The f64 corners of triangle slot `slot` (zeros for a padding slot).
@@ -121,7 +119,7 @@ impl Mesh {
     pub fn rebuilt(&self) -> Mesh {
         let in_blocks = matches!(self.corners, Corners::InBlocks);
         Mesh::in_leaf_order(
-            &|i| self.corners(i),
+            |i| self.corners(i),
             &self.indices,
             in_blocks,
             self.normals.clone(),
@@ -133,7 +131,7 @@ impl Mesh {
     /// corners `corner_of` gives, and stores them in its leaf order: f32 blocks, and f64
     /// corners unless `in_blocks` (the corners are f32 values, the blocks hold them).
     fn in_leaf_order(
-        corner_of: &(dyn Fn(usize) -> [DVec3; 3] + Sync),
+        corner_of: impl Fn(usize) -> [DVec3; 3] + Sync,
         indices: &[[u32; 3]],
         in_blocks: bool,
         normals: Vec<DVec3>,
