@@ -149,33 +149,50 @@ impl Mesh {
         drop(bounds);
         // What rays read is laid out on huge pages where large (`with_capacity_huge`).
         let slots = bvh.order.len();
-        let (mut sorted, mut sorted_indices) = (with_capacity_huge(slots), Vec::new());
+        let corner_at = |o: u32| match o {
+            PADDING => [DVec3::ZERO; 3],
+            o => corner_of(live[o as usize] as usize),
+        };
+        let mut sorted_indices = Vec::new();
         bvh.order
             .par_iter()
             .map(|&o| match o {
-                PADDING => ([DVec3::ZERO; 3], PADDING_TRIANGLE),
-                o => {
-                    let i = live[o as usize] as usize;
-                    (corner_of(i), indices[i])
-                }
+                PADDING => PADDING_TRIANGLE,
+                o => indices[live[o as usize] as usize],
             })
-            .unzip_into_vecs(&mut sorted, &mut sorted_indices);
+            .collect_into_vec(&mut sorted_indices);
         let mut blocks = with_capacity_huge(slots.div_ceil(BLOCK));
-        sorted
-            .par_chunks(BLOCK)
-            .map(TriangleBlock::new)
-            .collect_into_vec(&mut blocks);
-        // The triangles are stored in leaf order now; the order itself is not needed again.
-        bvh.order = Vec::new();
         let corners = if in_blocks {
-            debug_assert!(sorted
-                .iter()
-                .enumerate()
-                .all(|(s, c)| blocks[s / BLOCK].corners(s % BLOCK) == *c));
+            // Straight into the blocks: the f64 corners in leaf order would be 72 bytes a
+            // triangle made only to be dropped (720 MB at 10 M triangles).
+            bvh.order
+                .par_chunks(BLOCK)
+                .map(|chunk| {
+                    let mut corners = [[DVec3::ZERO; 3]; BLOCK];
+                    for (c, &o) in corners.iter_mut().zip(chunk) {
+                        *c = corner_at(o);
+                    }
+                    TriangleBlock::new(&corners[..chunk.len()])
+                })
+                .collect_into_vec(&mut blocks);
+            debug_assert!(
+                (0..slots).all(|s| blocks[s / BLOCK].corners(s % BLOCK) == corner_at(bvh.order[s]))
+            );
             Corners::InBlocks
         } else {
+            let mut sorted = with_capacity_huge(slots);
+            bvh.order
+                .par_iter()
+                .map(|&o| corner_at(o))
+                .collect_into_vec(&mut sorted);
+            sorted
+                .par_chunks(BLOCK)
+                .map(TriangleBlock::new)
+                .collect_into_vec(&mut blocks);
             Corners::Inline(sorted)
         };
+        // The triangles are stored in leaf order now; the order itself is not needed again.
+        bvh.order = Vec::new();
         let mut mesh = Mesh {
             corners,
             indices: sorted_indices,
