@@ -13,7 +13,7 @@ use crate::sampler::{uniform_sphere, Rng};
 use crate::scene::Scene;
 use crate::settings::RenderSettings;
 use crate::shade::{spawn_ray, Surface};
-use crate::world::{Corners, Hit, Leaving, Mesh, World};
+use crate::world::{Hit, Leaving, Mesh, World};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchReport {
@@ -380,11 +380,7 @@ fn bytes_per_triangle(world: &World) -> f64 {
 /// The heap bytes of one mesh: its triangles' corners, vertex indices, normals, texture
 /// coordinates, f32 triangle blocks and BVH (nodes, leaf order and spans), as stored.
 pub fn mesh_bytes(mesh: &Mesh) -> usize {
-    let corners = match &mesh.corners {
-        Corners::Inline(corners) => size_of_val(&corners[..]),
-        Corners::InBlocks => 0,
-    };
-    corners
+    mesh.corner_bytes()
         + size_of_val(&mesh.indices[..])
         + size_of_val(&mesh.normals[..])
         + size_of_val(&mesh.tex_coords[..])

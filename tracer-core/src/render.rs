@@ -634,8 +634,7 @@ mod tests {
                 ..Renderer::new(&scene, &settings).unwrap()
             };
             let image = renderer.render_tile(rect, &never).unwrap();
-            let bits: Vec<u32> = image.pixels.iter().map(|p| p.to_bits()).collect();
-            (bits, renderer.rays_traced())
+            (bits(&image.pixels), renderer.rays_traced())
         };
         // The seams are in view: some pixels' eye rays meet two of the mirror planes.
         let renderer = Renderer::new(&scene, &settings).unwrap();
@@ -699,12 +698,7 @@ mod tests {
                         &never,
                     ));
                 }
-                let bits = |v: &[f32]| v.iter().map(|p| p.to_bits()).collect::<Vec<_>>();
-                (
-                    bits(&image.pixels),
-                    sums.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                    renderer.rays_traced(),
-                )
+                (bits(&image.pixels), bits(&sums), renderer.rays_traced())
             };
             // Some pixels' frustums meet nothing, or the skip is never taken.
             let renderer = Renderer::new(&scene, &settings).unwrap();
@@ -758,14 +752,17 @@ mod tests {
                     &never,
                 ));
             }
-            (
-                sums.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                renderer.rays_traced(),
-            )
+            (bits(&sums), renderer.rays_traced())
         };
         let (by_stratum, rays) = render(true);
         assert!(rays > 0 && by_stratum.iter().any(|&b| b != 0));
         assert_eq!(by_stratum, render(false).0);
         assert_eq!(rays, render(false).1);
+    }
+
+    /// The bits of rendered values (pixels in f32, sums in f64; widening f32 is exact), to
+    /// compare renders exactly.
+    fn bits<T: Copy + Into<f64>>(values: &[T]) -> Vec<u64> {
+        values.iter().map(|&v| v.into().to_bits()).collect()
     }
 }

@@ -41,8 +41,6 @@ pub struct Mesh {
     pub bvh: Bvh,
     /// The triangles' corners in f32 blocks for the traversal's pre-test.
     pub blocks: Vec<TriangleBlock>,
-    /// Whether the mesh outgrows the last-level cache (see [`LARGE_MESH_FROM`]).
-    pub large: bool,
 }
 
 /// Where the exact triangle test finds a mesh's corners.
@@ -97,13 +95,23 @@ impl Mesh {
         self.indices.len()
     }
 
+    /// Bytes of the f64 corners (none where the blocks hold them).
+    pub fn corner_bytes(&self) -> usize {
+        match &self.corners {
+            Corners::InBlocks => 0,
+            Corners::Inline(corners) => size_of_val(&corners[..]),
+        }
+    }
+
     /// Bytes of the triangle data rays read in its leaves: f32 blocks and any f64 corners.
     pub fn leaf_bytes(&self) -> usize {
-        size_of_val(&self.blocks[..])
-            + match &self.corners {
-                Corners::InBlocks => 0,
-                Corners::Inline(corners) => size_of_val(&corners[..]),
-            }
+        size_of_val(&self.blocks[..]) + self.corner_bytes()
+    }
+
+    /// Whether the mesh outgrows the last-level cache (see [`LARGE_MESH_FROM`]).
+    #[inline]
+    pub fn large(&self) -> bool {
+        self.leaf_bytes() >= LARGE_MESH_FROM
     }
 
     /// Starts fetching what the exact test of slots `tris` reads (a hint: nothing is read).
@@ -200,10 +208,8 @@ impl Mesh {
             tex_coords,
             bvh,
             blocks,
-            large: false,
         };
-        mesh.large = mesh.leaf_bytes() >= LARGE_MESH_FROM;
-        if mesh.large {
+        if mesh.large() {
             mesh.bvh = std::mem::take(&mut mesh.bvh).with_spans();
         }
         mesh
@@ -952,8 +958,9 @@ impl World {
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
         let mut found: [Option<ObjectHit>; PACKET] = [None; PACKET];
+        let large = mesh.large();
         let fetch = |tris, what| match what {
-            Fetch::Leaf if mesh.large => mesh.prefetch_leaf(tris),
+            Fetch::Leaf if large => mesh.prefetch_leaf(tris),
             // The f64 corners of a whole subtree would be too many lines for the few a ray
             // tests.
             Fetch::Subtree => prefetch_blocks(&mesh.blocks, tris),
@@ -1124,8 +1131,9 @@ impl World {
         let local: &[Ray] = unsafe { std::slice::from_raw_parts(local.as_ptr().cast::<Ray>(), n) };
         // Each ray's triangle-test set-up, made when it first reaches a leaf.
         let mut tri_rays: [Option<(TriangleRay, TriangleRayF32)>; PACKET] = [None; PACKET];
+        let large = mesh.large();
         let fetch = |tris, what| match what {
-            Fetch::Leaf if mesh.large => mesh.prefetch_leaf(tris),
+            Fetch::Leaf if large => mesh.prefetch_leaf(tris),
             // The f64 corners of a whole subtree would be too many lines for the few a ray
             // tests.
             Fetch::Subtree => prefetch_blocks(&mesh.blocks, tris),
