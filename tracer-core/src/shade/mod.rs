@@ -258,7 +258,16 @@ impl<'a> Tracer<'a> {
             let n = toward_viewer(s.normal, d);
             let mut direct = stage.ambient * s.ambient;
             let shadow_level = (level as usize).min(SHADOW_LEVELS - 1);
-            for (i, light) in stage.lights.iter().enumerate() {
+            // A surface without a diffuse colour (a perfect mirror) takes nothing from the
+            // lights: each term is the light times zero. Its shadow rays are not traced; each
+            // light still makes its random draws, so the sample's later draws are unchanged.
+            let lights = if s.diffuse == DVec3::ZERO {
+                stage.lights.iter().for_each(|light| light.skip_sample(rng));
+                &[][..]
+            } else {
+                stage.lights
+            };
+            for (i, light) in lights.iter().enumerate() {
                 let cache = &mut self.shadow[i * SHADOW_LEVELS + shadow_level];
                 let (light, traced) = light.direct(
                     stage.world,
@@ -366,5 +375,76 @@ impl<'a> Tracer<'a> {
             }
         }
         color
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::texture::TextureFilter;
+    use crate::Scene;
+
+    #[test]
+    fn a_surface_without_diffuse_colour_traces_no_shadow_ray_but_keeps_its_draws() {
+        // A perfect mirror (diffuse 0) and a matte sphere, lit by a spherical light. The camera
+        // sits at the origin, so the scene's coordinates are the world's (built eye-relative).
+        let xml = r#"<scene>
+    <camera><fov v="0.8"/><near_clip v=".01"/><far_clip v="100"/>
+        <position x="0" y="0" z="0"/><orientation a="0" x="1" y="0" z="0"/></camera>
+    <background_color r="0.2" g="0.3" b="0.5"/>
+    <refractive_index v="1"/>
+    <ambient_light r="0.1" g="0.1" b="0.1"/>
+    <point_light><position x="3" y="4" z="-1"/><color r="1" g="1" b="1"/><radius v="0.5"/>
+    </point_light>
+    <material name="mirror"><ambient r="0" g="0" b="0"/><diffuse r="0" g="0" b="0"/>
+        <specular r="1" g="1" b="1"/><refractive_index v="0"/></material>
+    <material name="matte"><diffuse r="0.8" g="0.2" b="0.2"/><refractive_index v="0"/></material>
+    <sphere material="mirror"><position x="0" y="0" z="-6"/><radius v="1"/></sphere>
+    <sphere material="matte"><position x="4" y="0" z="-6"/><radius v="1"/></sphere>
+</scene>"#;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("mirror.scene");
+        std::fs::write(&path, xml).unwrap();
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let stage = scene.stage(TextureFilter::Nearest, None);
+        let light = &stage.lights[0];
+        let mut tracer = Tracer::new(stage, 5);
+        let trace = |tracer: &mut Tracer, origin: DVec3, toward: DVec3| {
+            let ray = Ray::new(origin, (toward - origin).normalize());
+            let mut rng = Rng::from_state(3);
+            let (color, counts) =
+                tracer.sample(&ray, 0.0, f64::INFINITY, &mut rng, None, Eye::Walk);
+            (color, counts, rng)
+        };
+        let draws = |n: usize| {
+            let mut rng = Rng::from_state(3);
+            for _ in 0..n {
+                light.sample_point(&mut rng);
+            }
+            rng
+        };
+
+        // Head-on at the mirror: its ray comes straight back past the camera to the sky.
+        let (color, counts, mut rng) = trace(&mut tracer, DVec3::ZERO, DVec3::new(0.0, 0.0, -6.0));
+        assert_eq!((counts.radiance, counts.shadow), (2, 0));
+        assert_eq!(color, stage.background);
+        assert_eq!(rng.next_u64(), draws(1).next_u64());
+
+        // At the matte sphere's lit side: its shadow ray is traced, with the same draws.
+        let (_, counts, mut rng) = trace(
+            &mut tracer,
+            DVec3::new(4.0, 0.5, 0.0),
+            DVec3::new(4.3, 0.3, -5.1),
+        );
+        assert_eq!((counts.radiance, counts.shadow), (1, 1));
+        assert_eq!(rng.next_u64(), draws(1).next_u64());
+
+        // Off the mirror onto the matte sphere: the mirror's draws come first, so the matte
+        // hit's light point is the second, as when the mirror's shadow ray was traced.
+        let (color, counts, mut rng) =
+            trace(&mut tracer, DVec3::ZERO, DVec3::new(0.64, 0.0, -5.24));
+        assert_eq!((counts.radiance, counts.shadow), (2, 1));
+        assert_ne!(color, stage.background);
+        assert_eq!(rng.next_u64(), draws(2).next_u64());
     }
 }
