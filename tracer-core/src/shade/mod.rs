@@ -259,31 +259,30 @@ impl<'a> Tracer<'a> {
             let mut direct = stage.ambient * s.ambient;
             let shadow_level = (level as usize).min(SHADOW_LEVELS - 1);
             // A surface without a diffuse colour (a perfect mirror) takes nothing from the
-            // lights: each term is the light times zero. Its shadow rays are not traced; each
-            // light still makes its random draws, so the sample's later draws are unchanged.
-            let lights = if s.diffuse == DVec3::ZERO {
+            // lights or the caustics: each term is a finite value times zero. Its shadow rays
+            // are not traced and no photons are gathered; each light still makes its random
+            // draws, so the sample's later draws are unchanged.
+            if s.diffuse == DVec3::ZERO {
                 stage.lights.iter().for_each(|light| light.skip_sample(rng));
-                &[][..]
             } else {
-                stage.lights
-            };
-            for (i, light) in lights.iter().enumerate() {
-                let cache = &mut self.shadow[i * SHADOW_LEVELS + shadow_level];
-                let (light, traced) = light.direct(
-                    stage.world,
-                    &s,
-                    n,
-                    error_scale,
-                    ray.time,
-                    rng,
-                    cache,
-                    leaving,
-                );
-                self.counts.shadow += traced as u32;
-                direct += light * s.diffuse;
-            }
-            if let Some(map) = stage.caustics {
-                direct += map.irradiance(s.position, n) * s.diffuse;
+                for (i, light) in stage.lights.iter().enumerate() {
+                    let cache = &mut self.shadow[i * SHADOW_LEVELS + shadow_level];
+                    let (light, traced) = light.direct(
+                        stage.world,
+                        &s,
+                        n,
+                        error_scale,
+                        ray.time,
+                        rng,
+                        cache,
+                        leaving,
+                    );
+                    self.counts.shadow += traced as u32;
+                    direct += light * s.diffuse;
+                }
+                if let Some(map) = stage.caustics {
+                    direct += map.irradiance(s.position, n) * s.diffuse;
+                }
             }
             let mut color = s.texture * direct;
             let tint = s.texture * s.specular;
