@@ -169,20 +169,21 @@ impl Mesh {
                 o => indices[live[o as usize] as usize],
             })
             .collect_into_vec(&mut sorted_indices);
+        // The blocks straight from the leaf order, without f64 corners in leaf order made for
+        // them: 72 bytes a triangle (720 MB at 10 M triangles), dropped at once where the
+        // blocks hold the corners.
         let mut blocks = with_capacity_huge(slots.div_ceil(BLOCK));
+        bvh.order
+            .par_chunks(BLOCK)
+            .map(|chunk| {
+                let mut corners = [[DVec3::ZERO; 3]; BLOCK];
+                for (c, &o) in corners.iter_mut().zip(chunk) {
+                    *c = corner_at(o);
+                }
+                TriangleBlock::new(&corners[..chunk.len()])
+            })
+            .collect_into_vec(&mut blocks);
         let corners = if in_blocks {
-            // Straight into the blocks: the f64 corners in leaf order would be 72 bytes a
-            // triangle made only to be dropped (720 MB at 10 M triangles).
-            bvh.order
-                .par_chunks(BLOCK)
-                .map(|chunk| {
-                    let mut corners = [[DVec3::ZERO; 3]; BLOCK];
-                    for (c, &o) in corners.iter_mut().zip(chunk) {
-                        *c = corner_at(o);
-                    }
-                    TriangleBlock::new(&corners[..chunk.len()])
-                })
-                .collect_into_vec(&mut blocks);
             debug_assert!(
                 (0..slots).all(|s| blocks[s / BLOCK].corners(s % BLOCK) == corner_at(bvh.order[s]))
             );
@@ -193,10 +194,6 @@ impl Mesh {
                 .par_iter()
                 .map(|&o| corner_at(o))
                 .collect_into_vec(&mut sorted);
-            sorted
-                .par_chunks(BLOCK)
-                .map(TriangleBlock::new)
-                .collect_into_vec(&mut blocks);
             Corners::Inline(sorted)
         };
         // The triangles are stored in leaf order now; the order itself is not needed again.
@@ -226,8 +223,8 @@ fn fits_f32(v: f64) -> bool {
 /// leaves a packet reaches at a node prefetched before they are tested
 /// ([`Bvh::traverse_packet`]'s `fetch`): such a mesh outgrows the last-level cache, so each
 /// leaf is a memory miss, and the misses overlap. A smaller one mostly stays in cache, where
-/// the prefetches are only instructions (the 100k-triangle dragon, 11 MB, ran 6-10% slower
-/// with them).
+/// the prefetches are only instructions (the 100k-triangle dragon, then 11 MB of leaf data,
+/// ran 6-10% slower with them).
 const LARGE_MESH_FROM: usize = 32 << 20;
 
 /// A world box around an instance of `mesh`: the transformed boxes near the root of its BVH,
