@@ -85,6 +85,7 @@ impl Out {
             ],
             index: [NO_CHILD; WIDTH],
             count: [0; WIDTH],
+            leaves: 0,
         };
         for (c, slot) in slots.iter().enumerate() {
             let b = to_f32_box(slot.part().bounds);
@@ -105,7 +106,10 @@ impl Out {
         self.order
             .resize(self.order.len().next_multiple_of(align), PADDING);
         self.nodes[index].index[c] = start as u32;
-        self.nodes[index].count[c] = part.len as u32;
+        let node = &mut self.nodes[index];
+        // Leaves hold at most `Builder::max_leaf` primitives.
+        node.count[c] = u16::try_from(part.len).expect("a leaf of at most a few primitives");
+        node.leaves |= 1 << c;
         self.depth = self.depth.max(part.depth + 1);
     }
 
@@ -857,9 +861,14 @@ mod tests {
                 reached[i] += 1;
                 let n = &bvh.nodes[i];
                 for c in 0..WIDTH {
+                    assert_eq!(
+                        n.leaves >> c & 1 == 1,
+                        n.count[c] > 0,
+                        "leaf mask of slot {c}"
+                    );
                     if n.count[c] > 0 {
                         assert_eq!(n.index[c] as usize % align, 0);
-                        for slot in n.index[c]..n.index[c] + n.count[c] {
+                        for slot in n.index[c]..n.index[c] + u32::from(n.count[c]) {
                             let p = bvh.order[slot as usize] as usize;
                             seen[p] += 1;
                             let (lo, hi) = (prims[p].min, prims[p].max);

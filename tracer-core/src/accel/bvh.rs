@@ -22,7 +22,10 @@ pub struct Node {
     /// Per child: the child node's index, or a leaf's first primitive slot.
     pub index: [u32; WIDTH],
     /// Per child: 0 for an interior child (or an unused slot), else the leaf's primitive count.
-    pub count: [u32; WIDTH],
+    pub count: [u16; WIDTH],
+    /// Bit c set where child c is a leaf (`count[c] > 0`): stored, since the walk needs it at
+    /// every visit and deriving it from the counts took about 20 instructions a visit.
+    pub leaves: u8,
 }
 
 /// A BVH over primitives known only by their bounds; the owner intersects them through a
@@ -89,7 +92,7 @@ impl Bvh {
             let mut span = [u32::MAX, 0];
             for c in (0..WIDTH).filter(|&c| node.index[c] != NO_CHILD) {
                 let [lo, hi] = if node.count[c] > 0 {
-                    [node.index[c], node.index[c] + node.count[c]]
+                    [node.index[c], node.index[c] + node.count[c] as u32]
                 } else {
                     debug_assert!(node.index[c] as usize > n, "a child before its parent");
                     spans[node.index[c] as usize]
@@ -314,11 +317,7 @@ fn farther<const ORDER: u8>(a: f32, b: f32) -> bool {
 /// The slots of `node` that hold leaves.
 #[inline(always)]
 fn leaf_mask(node: &Node) -> u32 {
-    let mut mask = 0;
-    for c in 0..WIDTH {
-        mask |= ((node.count[c] > 0) as u32) << c;
-    }
-    mask
+    node.leaves as u32
 }
 
 /// Starts fetching the cache lines of `nodes[index]` (a hint: an index out of range is
@@ -589,7 +588,7 @@ mod tests {
                 (0..WIDTH).map(move |c| {
                     let b = n.bounds;
                     let aabb = [b[0][c], b[2][c], b[4][c], b[1][c], b[3][c], b[5][c]];
-                    (aabb, n.index[c], n.count[c])
+                    (aabb, n.index[c], u32::from(n.count[c]))
                 })
             })
             .filter(|(_, _, count)| *count > 0)
@@ -781,7 +780,7 @@ mod tests {
             let node = &bvh.nodes[n];
             for c in (0..WIDTH).filter(|&c| node.index[c] != NO_CHILD) {
                 if node.count[c] > 0 {
-                    out.extend(node.index[c]..node.index[c] + node.count[c]);
+                    out.extend(node.index[c]..node.index[c] + u32::from(node.count[c]));
                 } else {
                     below(bvh, node.index[c] as usize, out);
                 }

@@ -217,7 +217,7 @@ impl TopNode {
                 out.bounds[row][c] = node.bounds[row][c];
             }
             out.index[c] = node.index[c];
-            out.count[c] = node.count[c];
+            out.count[c] = node.count[c].into();
             if node.count[c] > 0 {
                 out.leaves |= 1 << c;
             }
