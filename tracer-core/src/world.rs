@@ -450,6 +450,14 @@ pub struct Hit {
     bary: [f64; 3],
 }
 
+impl Hit {
+    /// The top-level object hit (see [`World::object_materials`]).
+    #[inline]
+    pub fn object(&self) -> u32 {
+        self.object
+    }
+}
+
 /// The geometry at a hit point: everything shading needs except the material's values.
 #[derive(Clone, Copy, Debug)]
 pub struct Patch<'a> {
@@ -1410,6 +1418,33 @@ impl World {
                 mesh_triangle: NO_MESH_TRIANGLE,
             },
         }
+    }
+
+    /// The materials top-level object `object` (a [`Hit::object`]) can show at a hit: its
+    /// one material three times, or a scene triangle's per-vertex materials.
+    pub fn object_materials(&self, object: u32) -> [u32; 3] {
+        match self.objects[object as usize] {
+            Object::Sphere(i) | Object::TranslatedSphere(i) => {
+                [self.spheres[i as usize].material; 3]
+            }
+            Object::Triangle(i) => self.triangles[i as usize].materials,
+            Object::Model(i) => [self.models[i as usize].material; 3],
+            Object::ModelTriangle(i) => {
+                let model = self.model_triangles[i as usize].model;
+                [self.models[model as usize].material; 3]
+            }
+            Object::Mover(i) => match &self.movers[i as usize].shape {
+                MoverShape::Sphere { material, .. } | MoverShape::Model { material, .. } => {
+                    [*material; 3]
+                }
+                MoverShape::Triangle(local) => local.materials,
+            },
+        }
+    }
+
+    /// The number of top-level objects (the range of [`Hit::object`]).
+    pub fn object_count(&self) -> usize {
+        self.objects.len()
     }
 
     /// Position, normals, texture coordinates and material at `hit`.

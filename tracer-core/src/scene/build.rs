@@ -38,6 +38,10 @@ pub struct Scene {
     pub(crate) environment: Option<Environment>,
     /// Whether any used material reflects glossily (the tracer then seeds the gloss stream).
     pub(crate) has_gloss: bool,
+    /// Per top-level object, whether every material it can show is opaque (refractive index
+    /// 0) with a diffuse colour, so that shading knows before it makes a hit's surface that
+    /// the lights will shade it.
+    pub(crate) lit_objects: Vec<bool>,
     pub stats: SceneStats,
     /// The world point the scene is built around (the eye at frame 0's shutter opening):
     /// geometry, lights and cameras are stored relative to it, so f64 positions and f32 BVH
@@ -72,6 +76,7 @@ impl Scene {
             environment: self.environment.as_ref(),
             outer_ior: self.description.refractive_index,
             caustics,
+            lit_objects: &self.lit_objects,
         }
     }
 
@@ -337,10 +342,19 @@ impl Scene {
             .iter()
             .zip(&used_materials)
             .any(|(m, used)| m.glossiness > 0.0 && *used);
+        let lit_objects = (0..world.object_count() as u32)
+            .map(|object| {
+                world.object_materials(object).iter().all(|&m| {
+                    let m = &materials[m as usize];
+                    m.ior == 0.0 && m.diffuse != DVec3::ZERO
+                })
+            })
+            .collect();
         Ok(Scene {
             description: d.clone(),
             lights,
             has_gloss,
+            lit_objects,
             environment,
             materials,
             stats: SceneStats {

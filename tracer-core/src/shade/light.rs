@@ -48,10 +48,11 @@ impl Light {
     }
 
     /// This light's shadowed, attenuated diffuse term c·att·max(N·L, 0) at surface `s` with
-    /// shading normal `n` (the caller multiplies by the material's diffuse colour), and
-    /// whether a shadow ray was traced for it (at `time`). `shadow` serves this light's
-    /// shadow rays (see [`World::occluded_by`]); `leaving`: what a ray leaves into the
-    /// surface and out of it (see [`World::leaving`]).
+    /// shading normal `n` (the caller multiplies by the material's diffuse colour), toward a
+    /// point it draws from `rng` ([`Light::sample_point`]), and whether a shadow ray was
+    /// traced for it (at `time`). `shadow` serves this light's shadow rays (see
+    /// [`World::occluded_by`]); `leaving`: what a ray leaves into the surface and out of it
+    /// (see [`World::leaving`]).
     #[allow(clippy::too_many_arguments)]
     pub fn direct(
         &self,
@@ -64,8 +65,42 @@ impl Light {
         shadow: &mut ShadowCache,
         leaving: [Leaving; 2],
     ) -> (DVec3, bool) {
-        let p = s.position;
+        // Drawn here rather than passed in: a point passed in comes through memory, which a
+        // point light's position (no draws) need not wait on (spheres.scene 1.03).
         let target = self.sample_point(rng);
+        self.term(target, world, s, n, error_scale, time, shadow, leaving)
+    }
+
+    /// [`Light::direct`] toward `target`, a point the caller drew ([`Light::sample_point`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn direct_toward(
+        &self,
+        target: DVec3,
+        world: &World,
+        s: &Surface,
+        n: DVec3,
+        error_scale: f64,
+        time: f64,
+        shadow: &mut ShadowCache,
+        leaving: [Leaving; 2],
+    ) -> (DVec3, bool) {
+        self.term(target, world, s, n, error_scale, time, shadow, leaving)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn term(
+        &self,
+        target: DVec3,
+        world: &World,
+        s: &Surface,
+        n: DVec3,
+        error_scale: f64,
+        time: f64,
+        shadow: &mut ShadowCache,
+        leaving: [Leaving; 2],
+    ) -> (DVec3, bool) {
+        let p = s.position;
         let to_light = target - p;
         let distance = to_light.length();
         if distance == 0.0 || !distance.is_finite() {

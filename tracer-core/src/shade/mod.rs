@@ -48,6 +48,9 @@ pub struct Stage<'a> {
     pub outer_ior: f64,
     /// Caustic photons gathered at diffuse hits, when the render has them.
     pub caustics: Option<&'a CausticMap>,
+    /// Per top-level object ([`Hit::object`]), whether all its materials are opaque with a
+    /// diffuse colour, so that the lights shade every hit on it.
+    pub lit_objects: &'a [bool],
 }
 
 impl Stage<'_> {
@@ -243,6 +246,18 @@ impl<'a> Tracer<'a> {
         rng: &mut Rng,
     ) -> DVec3 {
         let stage = self.stage;
+        // At a hit on an object the lights shade, the first light's point is drawn before
+        // the surface is made, from a copy of the stream: its draws and arithmetic then
+        // overlap the surface's instead of waiting for it, and the stream takes the copy's
+        // state where the light is shaded, so every sample draws what it drew before.
+        // (Drawn at every hit, the points wasted at mirrors and glass made stacks.scene
+        // 1.5% slower; a point light has no draws or arithmetic to overlap.)
+        let mut after_first = rng.clone();
+        let first_point = stage
+            .lights
+            .first()
+            .filter(|light| light.radius > 0.0 && stage.lit_objects[hit.object() as usize])
+            .map(|light| light.sample_point(&mut after_first));
         let s = stage.surface(ray, hit);
         // What a ray spawned here leaves, by the side it heads to: [into, out of] the surface.
         let leaving = [false, true].map(|outward| stage.world.leaving(hit, outward));
@@ -263,20 +278,35 @@ impl<'a> Tracer<'a> {
             // are not traced and no photons are gathered; each light still makes its random
             // draws, so the sample's later draws are unchanged.
             if s.diffuse == DVec3::ZERO {
-                stage.lights.iter().for_each(|light| light.skip_sample(rng));
+                // The first light's draws were made where its point was drawn early.
+                let drawn = if first_point.is_some() {
+                    *rng = after_first;
+                    1
+                } else {
+                    0
+                };
+                let rest = stage.lights.iter().skip(drawn);
+                rest.for_each(|light| light.skip_sample(rng));
             } else {
                 for (i, light) in stage.lights.iter().enumerate() {
                     let cache = &mut self.shadow[i * SHADOW_LEVELS + shadow_level];
-                    let (light, traced) = light.direct(
-                        stage.world,
-                        &s,
-                        n,
-                        error_scale,
-                        ray.time,
-                        rng,
-                        cache,
-                        leaving,
-                    );
+                    let (world, time) = (stage.world, ray.time);
+                    let (light, traced) = match first_point {
+                        Some(target) if i == 0 => {
+                            *rng = after_first.clone();
+                            light.direct_toward(
+                                target,
+                                world,
+                                &s,
+                                n,
+                                error_scale,
+                                time,
+                                cache,
+                                leaving,
+                            )
+                        }
+                        _ => light.direct(world, &s, n, error_scale, time, rng, cache, leaving),
+                    };
                     self.counts.shadow += traced as u32;
                     direct += light * s.diffuse;
                 }
@@ -382,6 +412,77 @@ mod tests {
     use super::*;
     use crate::texture::TextureFilter;
     use crate::Scene;
+
+    #[test]
+    fn drawing_the_first_lights_point_early_changes_no_sample() {
+        // A soft light over a matte sphere, a glass sphere, a mirror, a matte scene triangle
+        // and one blending matte and glass: only the matte objects are lit, and their hits
+        // draw the light's point before the surface is made.
+        let xml = r#"<scene>
+    <camera><fov v="0.9"/><near_clip v=".01"/><far_clip v="100"/>
+        <position x="0" y="0" z="0"/><orientation a="0" x="1" y="0" z="0"/></camera>
+    <background_color r="0.2" g="0.3" b="0.5"/>
+    <refractive_index v="1"/>
+    <ambient_light r="0.1" g="0.1" b="0.1"/>
+    <point_light><position x="1" y="5" z="-4"/><color r="1" g="1" b="1"/><radius v="0.7"/>
+    </point_light>
+    <point_light><position x="-3" y="2" z="0"/><color r="0.5" g="0.5" b="0.5"/><radius v="0.3"/>
+    </point_light>
+    <material name="matte"><diffuse r="0.8" g="0.7" b="0.2"/><specular r="0.2" g="0.2" b="0.2"/>
+        <refractive_index v="0"/></material>
+    <material name="glass"><diffuse r="0.1" g="0.1" b="0.1"/><specular r="1" g="1" b="1"/>
+        <refractive_index v="1.5"/></material>
+    <material name="mirror"><diffuse r="0" g="0" b="0"/><specular r="1" g="1" b="1"/>
+        <refractive_index v="0"/></material>
+    <vertex name="a" material="matte"><position x="-6" y="-1.5" z="-2"/>
+        <normal x="0" y="1" z="0"/><tex_coord u="0" v="0"/></vertex>
+    <vertex name="b" material="matte"><position x="6" y="-1.5" z="-2"/>
+        <normal x="0" y="1" z="0"/><tex_coord u="0" v="0"/></vertex>
+    <vertex name="c" material="matte"><position x="0" y="-1.5" z="-14"/>
+        <normal x="0" y="1" z="0"/><tex_coord u="0" v="0"/></vertex>
+    <vertex name="d" material="glass"><position x="-6" y="3" z="-14"/>
+        <normal x="0" y="1" z="0"/><tex_coord u="0" v="0"/></vertex>
+    <sphere material="matte"><position x="-1.6" y="0" z="-6"/><radius v="1"/></sphere>
+    <sphere material="glass"><position x="1.6" y="0" z="-6"/><radius v="1"/></sphere>
+    <sphere material="mirror"><position x="0" y="1.5" z="-8"/><radius v="1"/></sphere>
+    <triangle><position x="0" y="0" z="0"/><vertex name="a"/><vertex name="b"/><vertex name="c"/></triangle>
+    <triangle><position x="0" y="0" z="0"/><vertex name="a"/><vertex name="c"/><vertex name="d"/></triangle>
+</scene>"#;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("lit.scene");
+        std::fs::write(&path, xml).unwrap();
+        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let stage = scene.stage(TextureFilter::Nearest, None);
+        let mut lit = stage.lit_objects.to_vec();
+        lit.sort();
+        assert_eq!(
+            lit,
+            [false, false, false, true, true],
+            "two lit objects of five"
+        );
+        let none_lit = vec![false; stage.lit_objects.len()];
+        let late = Stage {
+            lit_objects: &none_lit,
+            ..stage
+        };
+        let (mut early, mut late) = (Tracer::new(stage, 5), Tracer::new(late, 5));
+        let mut lit_hits = 0;
+        for y in 0..24 {
+            for x in 0..32 {
+                let dir = DVec3::new(x as f64 / 16.0 - 1.0, 0.6 - y as f64 / 20.0, -1.0);
+                let ray = Ray::new(DVec3::ZERO, dir.normalize());
+                let seed = (y * 32 + x) as u64;
+                let (mut rng_a, mut rng_b) = (Rng::from_state(seed), Rng::from_state(seed));
+                let a = early.sample(&ray, 0.0, f64::INFINITY, &mut rng_a, None, Eye::Walk);
+                let b = late.sample(&ray, 0.0, f64::INFINITY, &mut rng_b, None, Eye::Walk);
+                assert_eq!(a, b, "pixel ({x}, {y})");
+                assert_eq!(rng_a.next_u64(), rng_b.next_u64(), "pixel ({x}, {y})");
+                let hit = stage.world.intersect(&ray, 0.0, f64::INFINITY);
+                lit_hits += hit.is_some_and(|h| stage.lit_objects[h.object() as usize]) as u32;
+            }
+        }
+        assert!(lit_hits > 100, "{lit_hits} eye rays hit lit objects");
+    }
 
     #[test]
     fn a_surface_without_diffuse_colour_traces_no_shadow_ray_but_keeps_its_draws() {
