@@ -67,15 +67,16 @@ impl Light {
     ) -> (DVec3, bool) {
         // Drawn here rather than passed in: a point passed in comes through memory, which a
         // point light's position (no draws) need not wait on (spheres.scene 1.03).
-        let target = self.sample_point(rng);
-        self.term(target, world, s, n, error_scale, time, shadow, leaving)
+        let aim = Aim::new(self.sample_point(rng), s.position);
+        self.term(aim, world, s, n, error_scale, time, shadow, leaving)
     }
 
-    /// [`Light::direct`] toward `target`, a point the caller drew ([`Light::sample_point`]).
+    /// [`Light::direct`] along `aim`, which the caller made from a point it drew
+    /// ([`Light::sample_point`]) and the surface's position.
     #[allow(clippy::too_many_arguments)]
-    pub fn direct_toward(
+    pub fn direct_along(
         &self,
-        target: DVec3,
+        aim: Aim,
         world: &World,
         s: &Surface,
         n: DVec3,
@@ -84,14 +85,14 @@ impl Light {
         shadow: &mut ShadowCache,
         leaving: [Leaving; 2],
     ) -> (DVec3, bool) {
-        self.term(target, world, s, n, error_scale, time, shadow, leaving)
+        self.term(aim, world, s, n, error_scale, time, shadow, leaving)
     }
 
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn term(
         &self,
-        target: DVec3,
+        aim: Aim,
         world: &World,
         s: &Surface,
         n: DVec3,
@@ -100,17 +101,19 @@ impl Light {
         shadow: &mut ShadowCache,
         leaving: [Leaving; 2],
     ) -> (DVec3, bool) {
-        let p = s.position;
-        let to_light = target - p;
-        let distance = to_light.length();
+        let Aim {
+            target,
+            distance,
+            l,
+        } = aim;
         if distance == 0.0 || !distance.is_finite() {
             return (DVec3::ZERO, false);
         }
-        let l = to_light / distance;
         let cos = n.dot(l);
         if cos.is_nan() || cos <= 0.0 {
             return (DVec3::ZERO, false);
         }
+        let p = s.position;
         let shadow_ray = spawn_ray(p, s.geometric_normal, l, error_scale, time);
         let shadow_length = (target - shadow_ray.origin).dot(l);
         let leaving = leaving[(l.dot(s.geometric_normal) > 0.0) as usize];
@@ -119,5 +122,29 @@ impl Light {
         }
         let attenuation = 1.0 / self.falloff(distance);
         (self.color * (attenuation * cos), true)
+    }
+}
+
+/// A light's point seen from a surface point: the point, its distance and the unit direction
+/// toward it (not finite where the distance is 0 or not finite; [`Light::direct`] then takes
+/// nothing from the light). Needs only the hit's position, so it can be made before the rest
+/// of the surface.
+#[derive(Clone, Copy, Debug)]
+pub struct Aim {
+    target: DVec3,
+    distance: f64,
+    l: DVec3,
+}
+
+impl Aim {
+    #[inline(always)]
+    pub fn new(target: DVec3, p: DVec3) -> Aim {
+        let to_light = target - p;
+        let distance = to_light.length();
+        Aim {
+            target,
+            distance,
+            l: to_light / distance,
+        }
     }
 }
