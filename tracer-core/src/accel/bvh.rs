@@ -92,7 +92,7 @@ impl Bvh {
             let mut span = [u32::MAX, 0];
             for c in (0..WIDTH).filter(|&c| node.index[c] != NO_CHILD) {
                 let [lo, hi] = if node.count[c] > 0 {
-                    [node.index[c], node.index[c] + node.count[c] as u32]
+                    [node.index[c], node.index[c] + u32::from(node.count[c])]
                 } else {
                     debug_assert!(node.index[c] as usize > n, "a child before its parent");
                     spans[node.index[c] as usize]

@@ -260,16 +260,20 @@ impl<'a> Tracer<'a> {
         // The direction toward it needs only the hit's position, so it is found early too.
         // Where the second light is spherical too, its point follows the first's (kept in
         // two plain options: an array of them cost the one-light scenes what they saved).
-        let mut after_first = rng.clone();
+        // `s.position` will be this very point (`World::patch` makes it so); made here, it comes
+        // from registers instead of a load that waits on the patch's narrower stores (that wait
+        // was 14-18% of this function's time).
+        let position = ray.at(hit.t);
+        let mut after_early = rng.clone();
         let first_aim = stage
             .lights
             .first()
             .filter(|light| light.radius > 0.0 && stage.lit_objects[hit.object() as usize])
-            .map(|light| Aim::new(light.sample_point(&mut after_first), ray.at(hit.t)));
+            .map(|light| Aim::new(light.sample_point(&mut after_early), position));
         let second_aim = match first_aim {
             Some(_) if self.second_soft => Some(Aim::new(
-                stage.lights[1].sample_point(&mut after_first),
-                ray.at(hit.t),
+                stage.lights[1].sample_point(&mut after_early),
+                position,
             )),
             _ => None,
         };
@@ -277,10 +281,7 @@ impl<'a> Tracer<'a> {
         // What a ray spawned here leaves, by the side it heads to: [into, out of] the surface.
         let leaving = [false, true].map(|outward| stage.world.leaving(hit, outward));
         let leaving_toward = |dir: DVec3| leaving[(dir.dot(s.geometric_normal) > 0.0) as usize];
-        // `s.position` is this very point (`World::patch` makes it so); computed again here, it
-        // comes from registers instead of a load that waits on the patch's narrower stores
-        // (that wait was 14-18% of this function's time).
-        let error_scale = ray.at(hit.t).abs().max_element() + hit.t;
+        let error_scale = position.abs().max_element() + hit.t;
         let d = ray.dir;
 
         if s.ior == 0.0 {
@@ -292,12 +293,11 @@ impl<'a> Tracer<'a> {
             // lights or the caustics: each term is a finite value times zero. Its shadow rays
             // are not traced and no photons are gathered; each light still makes its random
             // draws, so the sample's later draws are unchanged.
+            // The lights aimed at early have made their draws on the copy (none where no light
+            // was: the copy is then the stream as it was).
+            *rng = after_early;
             if s.diffuse == DVec3::ZERO {
-                // The first light's draws were made where its point was drawn early.
                 let drawn = first_aim.is_some() as usize + second_aim.is_some() as usize;
-                if drawn > 0 {
-                    *rng = after_first;
-                }
                 let rest = stage.lights.iter().skip(drawn);
                 rest.for_each(|light| light.skip_sample(rng));
             } else {
@@ -311,9 +311,6 @@ impl<'a> Tracer<'a> {
                     };
                     let (light, traced) = match early {
                         Some(aim) => {
-                            if i == 0 {
-                                *rng = after_first.clone();
-                            }
                             light.direct_along(aim, world, &s, n, error_scale, time, cache, leaving)
                         }
                         None => light.direct(world, &s, n, error_scale, time, rng, cache, leaving),
@@ -424,6 +421,14 @@ mod tests {
     use crate::texture::TextureFilter;
     use crate::Scene;
 
+    /// The scene `xml` describes (written to a file first: scenes load from files).
+    fn load(xml: &str) -> Scene {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("test.scene");
+        std::fs::write(&path, xml).unwrap();
+        Scene::load(&path).unwrap_or_else(|e| panic!("{e}"))
+    }
+
     #[test]
     fn drawing_the_first_lights_point_early_changes_no_sample() {
         // A soft light over a matte sphere, a glass sphere, a mirror, a matte scene triangle
@@ -459,10 +464,7 @@ mod tests {
     <triangle><position x="0" y="0" z="0"/><vertex name="a"/><vertex name="b"/><vertex name="c"/></triangle>
     <triangle><position x="0" y="0" z="0"/><vertex name="a"/><vertex name="c"/><vertex name="d"/></triangle>
 </scene>"#;
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("lit.scene");
-        std::fs::write(&path, xml).unwrap();
-        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let scene = load(xml);
         let stage = scene.stage(TextureFilter::Nearest, None);
         let mut lit = stage.lit_objects.to_vec();
         lit.sort();
@@ -513,10 +515,7 @@ mod tests {
     <sphere material="mirror"><position x="0" y="0" z="-6"/><radius v="1"/></sphere>
     <sphere material="matte"><position x="4" y="0" z="-6"/><radius v="1"/></sphere>
 </scene>"#;
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("mirror.scene");
-        std::fs::write(&path, xml).unwrap();
-        let scene = Scene::load(&path).unwrap_or_else(|e| panic!("{e}"));
+        let scene = load(xml);
         let stage = scene.stage(TextureFilter::Nearest, None);
         let light = &stage.lights[0];
         let mut tracer = Tracer::new(stage, 5);

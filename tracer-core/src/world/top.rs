@@ -218,10 +218,8 @@ impl TopNode {
             }
             out.index[c] = node.index[c];
             out.count[c] = node.count[c].into();
-            if node.count[c] > 0 {
-                out.leaves |= 1 << c;
-            }
         }
+        out.leaves = node.leaves.into();
         out
     }
 }
