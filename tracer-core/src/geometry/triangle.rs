@@ -150,41 +150,60 @@ fn round_up(v: f64) -> f32 {
 }
 
 /// Per-ray constants of [`TriangleRayF32::may_hit`], from the same [`TriangleRay`] the exact
-/// test uses.
+/// test uses. The SSE test's operands are kept four times over, ready to load: made once per
+/// ray, they spare each block of a leaf its broadcasts and index checks.
 #[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
 pub struct TriangleRayF32 {
-    kx: usize,
-    ky: usize,
-    kz: usize,
-    origin: [f32; 3],
-    shear: [f32; 2],
-    /// Rounding-error scale of the origin: its largest |coordinate|, rounded up.
-    scale: f32,
+    /// The origin's coordinates on the sheared frame's axes kx, ky, kz (in that order), then
+    /// the shear's x and y, then the origin's rounding-error scale (its largest |coordinate|,
+    /// rounded up), each in four lanes.
+    lanes: [[f32; BLOCK]; 6],
+    /// kx, ky, kz: a permutation of 0..3 (checked where it is made).
+    axes: [usize; 3],
 }
+
+/// Rows of [`TriangleRayF32::lanes`].
+const ORIGIN_X: usize = 0;
+const SHEAR_X: usize = 3;
+const SHEAR_Y: usize = 4;
+const ORIGIN_SCALE: usize = 5;
 
 /// f32 unit roundoff (2^-24).
 const U32: f32 = 1.0 / (1u32 << 24) as f32;
 
 impl TriangleRayF32 {
     pub fn new(ray: &TriangleRay) -> TriangleRayF32 {
+        let axes = [ray.kx, ray.ky, ray.kz];
+        assert!(
+            axes.iter().all(|&k| k < 3)
+                && axes[0] != axes[1]
+                && axes[1] != axes[2]
+                && axes[0] != axes[2],
+            "the sheared frame's axes {axes:?} are a permutation"
+        );
         let o = ray.origin;
         let scale = if o.is_finite() {
             o.abs().max_element()
         } else {
             f64::INFINITY
         };
-        TriangleRayF32 {
-            kx: ray.kx,
-            ky: ray.ky,
-            kz: ray.kz,
-            origin: [o.x as f32, o.y as f32, o.z as f32],
-            shear: [ray.shear.x as f32, ray.shear.y as f32],
-            scale: if scale < F32_LIMIT {
-                round_up(scale)
-            } else {
-                f32::INFINITY
-            },
-        }
+        let scale = if scale < F32_LIMIT {
+            round_up(scale)
+        } else {
+            f32::INFINITY
+        };
+        let o = [o.x as f32, o.y as f32, o.z as f32];
+        let lanes = [
+            o[axes[0]],
+            o[axes[1]],
+            o[axes[2]],
+            ray.shear.x as f32,
+            ray.shear.y as f32,
+            scale,
+        ]
+        .map(|v| [v; BLOCK]);
+        TriangleRayF32 { lanes, axes }
     }
 
     /// The lanes of `block` whose triangle [`intersect_triangle`] might hit (ignoring the
@@ -193,11 +212,13 @@ impl TriangleRayF32 {
     ///
     /// Error bound, with u = 2^-24 and M = the triangle's plus the origin's coordinate scale:
     /// the sheared corner coordinates (ax, ay, …) are each within e = 8uM of the exact ones
-    /// (rounding the corners, origin and shear, and five operations); an edge function
-    /// cx·by − cy·bx is then within e(|cx|+|by|+|cy|+|bx|) + 2e² + 2u(|cx·by|+|cy·bx|). The
-    /// bound used doubles every term (covering the f64 test's own error and the bound's
-    /// rounding) and adds 1e-30 for underflow. Overflow or NaN never passes a comparison, so
-    /// it rejects nothing.
+    /// (rounding the corners, origin and shear, and at most five operations); an edge function
+    /// cx·by − cy·bx is then within e(sb+sc) + 2e² + 2u(|cx·by|+|cy·bx|), where sb = |bx|+|by|
+    /// and sc = |cx|+|cy|, and |cx·by|+|cy·bx| ≤ sb·sc. The bound used doubles every term
+    /// (covering the f64 test's own error and the bound's rounding) and adds 1e-30 for
+    /// underflow. Fused multiply-adds, where the build has them, only round less, so the same
+    /// bound holds with or without. Overflow or NaN never passes a comparison, so it rejects
+    /// nothing.
     #[inline(always)]
     pub fn may_hit(&self, block: &TriangleBlock) -> u32 {
         #[cfg(target_arch = "x86_64")]
@@ -215,55 +236,77 @@ impl TriangleRayF32 {
     #[allow(unused_unsafe)]
     fn may_hit_sse(&self, block: &TriangleBlock) -> u32 {
         use std::arch::x86_64::*;
-        // SAFETY: SSE is part of the x86_64 baseline; loads read 16-byte [f32; 4] rows.
+        // `a·b + c`, `c − a·b` and `a·b − c`, fused where the build targets FMA (the
+        // project's x86-64-v3 default), in the same form as `may_hit_scalar`'s.
+        // SAFETY (all three): FMA is enabled for the build where they use it; SSE is baseline.
+        #[inline(always)]
+        fn madd(a: __m128, b: __m128, c: __m128) -> __m128 {
+            #[cfg(target_feature = "fma")]
+            return unsafe { _mm_fmadd_ps(a, b, c) };
+            #[cfg(not(target_feature = "fma"))]
+            return unsafe { _mm_add_ps(_mm_mul_ps(a, b), c) };
+        }
+        #[inline(always)]
+        fn nmadd(a: __m128, b: __m128, c: __m128) -> __m128 {
+            #[cfg(target_feature = "fma")]
+            return unsafe { _mm_fnmadd_ps(a, b, c) };
+            #[cfg(not(target_feature = "fma"))]
+            return unsafe { _mm_sub_ps(c, _mm_mul_ps(a, b)) };
+        }
+        #[inline(always)]
+        fn msub(a: __m128, b: __m128, c: __m128) -> __m128 {
+            #[cfg(target_feature = "fma")]
+            return unsafe { _mm_fmsub_ps(a, b, c) };
+            #[cfg(not(target_feature = "fma"))]
+            return unsafe { _mm_sub_ps(_mm_mul_ps(a, b), c) };
+        }
+        let [kx, ky, kz] = self.axes;
+        let lanes = |row: usize| self.lanes[row].as_ptr();
+        // SAFETY: SSE is part of the x86_64 baseline; loads read 16-byte [f32; 4] rows, and
+        // `axes` holds row indices below 3 (asserted in `new`).
         unsafe {
-            let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-            let ox = _mm_set1_ps(self.origin[kx]);
-            let oy = _mm_set1_ps(self.origin[ky]);
-            let oz = _mm_set1_ps(self.origin[kz]);
-            let sx = _mm_set1_ps(self.shear[0]);
-            let sy = _mm_set1_ps(self.shear[1]);
+            let ox = _mm_loadu_ps(lanes(ORIGIN_X));
+            let oy = _mm_loadu_ps(lanes(ORIGIN_X + 1));
+            let oz = _mm_loadu_ps(lanes(ORIGIN_X + 2));
+            let sx = _mm_loadu_ps(lanes(SHEAR_X));
+            let sy = _mm_loadu_ps(lanes(SHEAR_Y));
             let project = |k: usize| {
                 let c = &block.corners[k];
-                let x = _mm_sub_ps(_mm_loadu_ps(c[kx].as_ptr()), ox);
-                let y = _mm_sub_ps(_mm_loadu_ps(c[ky].as_ptr()), oy);
-                let z = _mm_sub_ps(_mm_loadu_ps(c[kz].as_ptr()), oz);
-                (
-                    _mm_sub_ps(x, _mm_mul_ps(sx, z)),
-                    _mm_sub_ps(y, _mm_mul_ps(sy, z)),
-                )
+                let x = _mm_sub_ps(_mm_loadu_ps(c.get_unchecked(kx).as_ptr()), ox);
+                let y = _mm_sub_ps(_mm_loadu_ps(c.get_unchecked(ky).as_ptr()), oy);
+                let z = _mm_sub_ps(_mm_loadu_ps(c.get_unchecked(kz).as_ptr()), oz);
+                (nmadd(sx, z, x), nmadd(sy, z, y))
             };
             let (ax, ay) = project(0);
             let (bx, by) = project(1);
             let (cx, cy) = project(2);
             let sign = _mm_set1_ps(-0.0);
             let abs = |v: __m128| _mm_andnot_ps(sign, v);
-            let scale = _mm_add_ps(_mm_loadu_ps(block.scale.as_ptr()), _mm_set1_ps(self.scale));
+            let scale = _mm_add_ps(
+                _mm_loadu_ps(block.scale.as_ptr()),
+                _mm_loadu_ps(lanes(ORIGIN_SCALE)),
+            );
             // e doubled: 16uM.
             let e = _mm_mul_ps(scale, _mm_set1_ps(16.0 * U32));
             // 2e² doubled, plus the underflow margin.
-            let base = _mm_add_ps(
-                _mm_mul_ps(_mm_mul_ps(e, e), _mm_set1_ps(4.0)),
-                _mm_set1_ps(1e-30),
-            );
+            let base = madd(e, _mm_mul_ps(e, _mm_set1_ps(4.0)), _mm_set1_ps(1e-30));
             let (sa, sb, sc) = (
                 _mm_add_ps(abs(ax), abs(ay)),
                 _mm_add_ps(abs(bx), abs(by)),
                 _mm_add_ps(abs(cx), abs(cy)),
             );
             let rel = _mm_set1_ps(4.0 * U32);
-            // One edge function p − q and its error bound, given its corners' |x|+|y| sums.
-            let edge = |p: __m128, q: __m128, s0: __m128, s1: __m128| {
-                let f = _mm_sub_ps(p, q);
-                let bound = _mm_add_ps(
-                    _mm_add_ps(_mm_mul_ps(e, _mm_add_ps(s0, s1)), base),
-                    _mm_mul_ps(rel, _mm_add_ps(abs(p), abs(q))),
-                );
+            let (ra, rb) = (_mm_mul_ps(rel, sa), _mm_mul_ps(rel, sb));
+            // One edge function p·q − r·s and its bound, given its corners' |x|+|y| sums
+            // (`rel_s0` is 4u times the first).
+            let edge = |p, q, r, s, rel_s0, s0, s1| {
+                let f = msub(p, q, _mm_mul_ps(r, s));
+                let bound = madd(rel_s0, s1, madd(e, _mm_add_ps(s0, s1), base));
                 (f, bound)
             };
-            let (u, eu) = edge(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx), sb, sc);
-            let (v, ev) = edge(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx), sa, sc);
-            let (w, ew) = edge(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax), sa, sb);
+            let (u, eu) = edge(cx, by, cy, bx, rb, sb, sc);
+            let (v, ev) = edge(ax, cy, ay, cx, ra, sa, sc);
+            let (w, ew) = edge(bx, ay, by, ax, ra, sa, sb);
             let neg = |f: __m128, b: __m128| _mm_cmplt_ps(f, _mm_xor_ps(b, sign));
             let pos = |f: __m128, b: __m128| _mm_cmpgt_ps(f, b);
             let any_neg = _mm_or_ps(_mm_or_ps(neg(u, eu), neg(v, ev)), neg(w, ew));
@@ -276,35 +319,46 @@ impl TriangleRayF32 {
     /// The same test lane by lane, for targets without SSE (and as the SSE version's check).
     #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
     fn may_hit_scalar(&self, block: &TriangleBlock) -> u32 {
-        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-        let [ox, oy, oz] = [self.origin[kx], self.origin[ky], self.origin[kz]];
-        let [sx, sy] = self.shear;
+        // Fused exactly where `may_hit_sse` fuses.
+        let madd = |a: f32, b: f32, c: f32| {
+            if cfg!(target_feature = "fma") {
+                a.mul_add(b, c)
+            } else {
+                a * b + c
+            }
+        };
+        let nmadd = |a: f32, b: f32, c: f32| madd(-a, b, c);
+        let msub = |a: f32, b: f32, c: f32| madd(a, b, -c);
+        let [kx, ky, kz] = self.axes;
+        let [ox, oy, oz, sx, sy, origin_scale] = self.lanes.map(|row| row[0]);
         let mut mask = 0;
         for lane in 0..BLOCK {
             let project = |k: usize| {
                 let c = &block.corners[k];
                 let z = c[kz][lane] - oz;
-                ((c[kx][lane] - ox) - sx * z, (c[ky][lane] - oy) - sy * z)
+                (
+                    nmadd(sx, z, c[kx][lane] - ox),
+                    nmadd(sy, z, c[ky][lane] - oy),
+                )
             };
             let (ax, ay) = project(0);
             let (bx, by) = project(1);
             let (cx, cy) = project(2);
-            let e = (block.scale[lane] + self.scale) * (16.0 * U32);
-            let base = e * e * 4.0 + 1e-30;
+            let e = (block.scale[lane] + origin_scale) * (16.0 * U32);
+            let base = madd(e, e * 4.0, 1e-30);
             let (sa, sb, sc) = (
                 ax.abs() + ay.abs(),
                 bx.abs() + by.abs(),
                 cx.abs() + cy.abs(),
             );
-            let edge = |p: f32, q: f32, s0: f32, s1: f32| {
-                (
-                    p - q,
-                    e * (s0 + s1) + base + 4.0 * U32 * (p.abs() + q.abs()),
-                )
+            let rel = 4.0 * U32;
+            let (ra, rb) = (rel * sa, rel * sb);
+            let edge = |p: f32, q: f32, r: f32, s: f32, rel_s0: f32, s0: f32, s1: f32| {
+                (msub(p, q, r * s), madd(rel_s0, s1, madd(e, s0 + s1, base)))
             };
-            let (u, eu) = edge(cx * by, cy * bx, sb, sc);
-            let (v, ev) = edge(ax * cy, ay * cx, sa, sc);
-            let (w, ew) = edge(bx * ay, by * ax, sa, sb);
+            let (u, eu) = edge(cx, by, cy, bx, rb, sb, sc);
+            let (v, ev) = edge(ax, cy, ay, cx, ra, sa, sc);
+            let (w, ew) = edge(bx, ay, by, ax, ra, sa, sb);
             let any_neg = u < -eu || v < -ev || w < -ew;
             let any_pos = u > eu || v > ev || w > ew;
             if !(any_neg && any_pos) {
