@@ -147,7 +147,7 @@ impl Bvh {
         if self.nodes.is_empty() {
             return false;
         }
-        match RayF32::new(ray) {
+        match RayF32::new(ray, reach(&self.bounds())) {
             Some(r) => {
                 #[cfg(target_arch = "x86_64")]
                 if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
@@ -176,7 +176,7 @@ impl Bvh {
         if self.nodes.is_empty() {
             return false;
         }
-        match RayF32::new(ray) {
+        match RayF32::new(ray, reach(&self.bounds())) {
             Some(r) => {
                 #[cfg(target_arch = "x86_64")]
                 if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
@@ -189,6 +189,21 @@ impl Bvh {
                 hit_f64(node, ray, t_max)
             }),
         }
+    }
+
+    /// [`Bvh::traverse`] with the f64 slab test at every node: the leaves the ray truly
+    /// meets, which every f32 walk must hand it too.
+    #[cfg(test)]
+    pub(super) fn traverse_f64(
+        &self,
+        ray: &Ray,
+        t_max: &mut f64,
+        leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+    ) -> bool {
+        !self.nodes.is_empty()
+            && self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| {
+                hit_f64(node, ray, t_max)
+            })
     }
 
     /// [`Bvh::traverse_with`] with the f32 box test eight lanes at a time, compiled for
@@ -340,48 +355,78 @@ fn prefetch(nodes: &[Node], index: u32) {
     let _ = (nodes, index);
 }
 
-/// Per-ray constants of the f32 slab test. Per axis, the near and far planes are chosen by
-/// the direction's sign, and the origin is rounded to f32 toward the side that makes each
-/// plane's distance smaller (near) or larger (far), so rounding never culls a true hit.
+/// Per-ray constants of the f32 slab test, which finds each plane's distance with one fused
+/// multiply-add, `b·inv + c` (a node visit waits on its chain of operations: the former
+/// `(b − o)·inv` and its margins took two more steps).
+///
+/// `c` is `−o·inv` moved down (near planes) or up (far planes) by a margin that covers every
+/// rounding: with u = 2^-24, span = (R + |o|)·|inv| (R bounds the tree's box coordinates on
+/// the axis), the f32 inverse is off by u·|b·inv| ≤ u·span, `c`'s own rounding to f32 and
+/// the multiply-add's one rounding (two where it is not fused) by about as much again each,
+/// so a margin of 8u·span plus a tiny absolute term leaves the near distance below, and the
+/// far one above, the exact ones. (`c` is rounded to nearest, inside that margin: rounding
+/// it toward a side branches on a value that differs from ray to ray, and those branches
+/// mispredicted half the time.)
+#[derive(Clone, Copy)]
 struct RayF32 {
     /// Row of `Node::bounds` holding the near / far plane on each axis.
     near: [usize; 3],
     far: [usize; 3],
-    o_near: [f32; 3],
-    o_far: [f32; 3],
     inv: [f32; 3],
+    c_near: [f32; 3],
+    c_far: [f32; 3],
+}
+
+/// The fused slab test's margin, in units of the ray's span on the axis (see [`RayF32`]).
+const SLAB_MARGIN: f64 = 8.0 / (1u64 << 24) as f64;
+/// Its absolute part, for subnormal results.
+const SLAB_MARGIN_ABS: f64 = 1e-30;
+/// Rays whose span on some axis reaches this take the f64 slab test: the margins and slab
+/// distances then stay far from f32's overflow.
+const F32_SPAN: f64 = 1e30;
+
+/// Per axis, a bound on the magnitude of every box coordinate of a tree whose primitives'
+/// bounds are `bounds` (its f32 boxes are rounded outward by at most an f32 unit).
+#[inline(always)]
+fn reach(bounds: &Aabb) -> [f64; 3] {
+    let r = bounds.min.abs().max(bounds.max.abs());
+    [r.x, r.y, r.z].map(|v| v * (1.0 + 1.0 / (1u32 << 20) as f64) + 1e-30)
 }
 
 impl RayF32 {
+    /// The set-up for a tree reaching `reach` ([`reach`]), or None where the ray is out of
+    /// the f32 test's range.
     #[inline(always)]
-    fn new(ray: &Ray) -> Option<RayF32> {
+    fn new(ray: &Ray, reach: [f64; 3]) -> Option<RayF32> {
         let mut r = RayF32 {
             near: [0; 3],
             far: [0; 3],
-            o_near: [0.0; 3],
-            o_far: [0.0; 3],
             inv: [0.0; 3],
+            c_near: [0.0; 3],
+            c_far: [0.0; 3],
         };
         for a in 0..3 {
             let (o, inv) = (ray.origin[a], ray.inv_dir[a]);
-            let ok = o.abs() < F32_SAFE && inv.abs() < F32_SAFE && inv.abs() > 1.0 / F32_SAFE;
+            let span = (reach[a] + o.abs()) * inv.abs();
+            let ok = o.abs() < F32_SAFE
+                && inv.abs() < F32_SAFE
+                && inv.abs() > 1.0 / F32_SAFE
+                && span < F32_SPAN;
             if !ok {
                 return None;
             }
-            let (lo, hi) = (round_down(o), round_up(o));
+            let margin = SLAB_MARGIN * span + SLAB_MARGIN_ABS;
+            let offset = -o * inv;
+            r.c_near[a] = (offset - margin) as f32;
+            r.c_far[a] = (offset + margin) as f32;
+            r.inv[a] = inv as f32;
             if inv >= 0.0 {
-                // Near plane is the minimum: (min - o) ≥ (min - hi); far (max - o) ≤ (max - lo).
                 r.near[a] = 2 * a;
                 r.far[a] = 2 * a + 1;
-                r.o_near[a] = hi;
-                r.o_far[a] = lo;
             } else {
                 r.near[a] = 2 * a + 1;
                 r.far[a] = 2 * a;
-                r.o_near[a] = lo;
-                r.o_far[a] = hi;
             }
-            r.inv[a] = inv as f32;
         }
         Some(r)
     }
@@ -394,28 +439,28 @@ impl RayF32 {
         use std::arch::x86_64::*;
         let mut mask = 0;
         let mut dist = [0f32; WIDTH];
-        // SAFETY: SSE is part of the x86_64 baseline; loads read 16 bytes from rows of
-        // `WIDTH` (a multiple of four) f32s at offsets `half`, `half + 4`, ….
+        // SAFETY: SSE is part of the x86_64 baseline (FMA where the build enables it); loads
+        // read 16 bytes from rows of `WIDTH` (a multiple of four) f32s at offsets `half`,
+        // `half + 4`, ….
         unsafe {
             let b = &node.bounds;
-            let t_far = _mm_set1_ps(t_max_f32(t_max));
+            let t_far = _mm_set1_ps(t_limit(t_max));
             for half in (0..WIDTH).step_by(4) {
-                let plane = |row: usize, o: f32, inv: f32| {
-                    _mm_mul_ps(
-                        _mm_sub_ps(_mm_loadu_ps(b[row].as_ptr().add(half)), _mm_set1_ps(o)),
-                        _mm_set1_ps(inv),
-                    )
+                let plane = |row: usize, inv: f32, c: f32| {
+                    let b = _mm_loadu_ps(b[row].as_ptr().add(half));
+                    #[cfg(target_feature = "fma")]
+                    return _mm_fmadd_ps(b, _mm_set1_ps(inv), _mm_set1_ps(c));
+                    #[cfg(not(target_feature = "fma"))]
+                    return _mm_add_ps(_mm_mul_ps(b, _mm_set1_ps(inv)), _mm_set1_ps(c));
                 };
-                let nx = plane(self.near[0], self.o_near[0], self.inv[0]);
-                let ny = plane(self.near[1], self.o_near[1], self.inv[1]);
-                let nz = plane(self.near[2], self.o_near[2], self.inv[2]);
-                let fx = plane(self.far[0], self.o_far[0], self.inv[0]);
-                let fy = plane(self.far[1], self.o_far[1], self.inv[1]);
-                let fz = plane(self.far[2], self.o_far[2], self.inv[2]);
+                let nx = plane(self.near[0], self.inv[0], self.c_near[0]);
+                let ny = plane(self.near[1], self.inv[1], self.c_near[1]);
+                let nz = plane(self.near[2], self.inv[2], self.c_near[2]);
+                let fx = plane(self.far[0], self.inv[0], self.c_far[0]);
+                let fy = plane(self.far[1], self.inv[1], self.c_far[1]);
+                let fz = plane(self.far[2], self.inv[2], self.c_far[2]);
                 let near = _mm_max_ps(_mm_max_ps(nx, ny), _mm_max_ps(nz, _mm_setzero_ps()));
                 let far = _mm_min_ps(_mm_min_ps(fx, fy), _mm_min_ps(fz, t_far));
-                let near = _mm_mul_ps(near, _mm_set1_ps(SLAB_DOWN));
-                let far = _mm_add_ps(_mm_mul_ps(far, _mm_set1_ps(SLAB_UP)), _mm_set1_ps(SLAB_ABS));
                 mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << half;
                 _mm_storeu_ps(dist.as_mut_ptr().add(half), near);
             }
@@ -439,25 +484,23 @@ impl RayF32 {
         let mut dist = [0f32; WIDTH];
         let b = &node.bounds;
         // SAFETY: the caller guarantees AVX2.
-        let t_far = unsafe { _mm256_set1_ps(t_max_f32(t_max)) };
+        let t_far = unsafe { _mm256_set1_ps(t_limit(t_max)) };
         for half in (0..WIDTH).step_by(8) {
-            // SAFETY: 32-byte loads from rows of `WIDTH` (a multiple of eight) f32s at
-            // offsets `half`, `half + 8`, ….
-            let plane = |row: usize, o: f32, inv: f32| unsafe {
-                _mm256_mul_ps(
-                    _mm256_sub_ps(
-                        _mm256_loadu_ps(b[row].as_ptr().add(half)),
-                        _mm256_set1_ps(o),
-                    ),
-                    _mm256_set1_ps(inv),
-                )
+            // SAFETY: AVX2 (and FMA where the build enables it); 32-byte loads from rows of
+            // `WIDTH` (a multiple of eight) f32s at offsets `half`, `half + 8`, ….
+            let plane = |row: usize, inv: f32, c: f32| unsafe {
+                let b = _mm256_loadu_ps(b[row].as_ptr().add(half));
+                #[cfg(target_feature = "fma")]
+                return _mm256_fmadd_ps(b, _mm256_set1_ps(inv), _mm256_set1_ps(c));
+                #[cfg(not(target_feature = "fma"))]
+                return _mm256_add_ps(_mm256_mul_ps(b, _mm256_set1_ps(inv)), _mm256_set1_ps(c));
             };
-            let nx = plane(self.near[0], self.o_near[0], self.inv[0]);
-            let ny = plane(self.near[1], self.o_near[1], self.inv[1]);
-            let nz = plane(self.near[2], self.o_near[2], self.inv[2]);
-            let fx = plane(self.far[0], self.o_far[0], self.inv[0]);
-            let fy = plane(self.far[1], self.o_far[1], self.inv[1]);
-            let fz = plane(self.far[2], self.o_far[2], self.inv[2]);
+            let nx = plane(self.near[0], self.inv[0], self.c_near[0]);
+            let ny = plane(self.near[1], self.inv[1], self.c_near[1]);
+            let nz = plane(self.near[2], self.inv[2], self.c_near[2]);
+            let fx = plane(self.far[0], self.inv[0], self.c_far[0]);
+            let fy = plane(self.far[1], self.inv[1], self.c_far[1]);
+            let fz = plane(self.far[2], self.inv[2], self.c_far[2]);
             // SAFETY: the caller guarantees AVX2; the store writes `dist`'s eight f32s at
             // `half`.
             unsafe {
@@ -466,11 +509,6 @@ impl RayF32 {
                     _mm256_max_ps(nz, _mm256_setzero_ps()),
                 );
                 let far = _mm256_min_ps(_mm256_min_ps(fx, fy), _mm256_min_ps(fz, t_far));
-                let near = _mm256_mul_ps(near, _mm256_set1_ps(SLAB_DOWN));
-                let far = _mm256_add_ps(
-                    _mm256_mul_ps(far, _mm256_set1_ps(SLAB_UP)),
-                    _mm256_set1_ps(SLAB_ABS),
-                );
                 mask |= (_mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32) << half;
                 _mm256_storeu_ps(dist.as_mut_ptr().add(half), near);
             }
@@ -482,20 +520,18 @@ impl RayF32 {
     #[inline(always)]
     fn hit(&self, node: &Node, t_max: f64) -> (u32, [f32; WIDTH]) {
         let b = &node.bounds;
-        let t_max = t_max_f32(t_max);
+        let t_max = t_limit(t_max);
         let mut mask = 0;
         let mut dist = [0f32; WIDTH];
         for c in 0..WIDTH {
             let mut near = 0f32;
             let mut far = t_max;
             for a in 0..3 {
-                let tn = (b[self.near[a]][c] - self.o_near[a]) * self.inv[a];
-                let tf = (b[self.far[a]][c] - self.o_far[a]) * self.inv[a];
+                let tn = b[self.near[a]][c] * self.inv[a] + self.c_near[a];
+                let tf = b[self.far[a]][c] * self.inv[a] + self.c_far[a];
                 near = if tn > near { tn } else { near };
                 far = if tf < far { tf } else { far };
             }
-            let near = near * SLAB_DOWN;
-            let far = far * SLAB_UP + SLAB_ABS;
             if near <= far {
                 mask |= 1 << c;
             }
@@ -503,6 +539,13 @@ impl RayF32 {
         }
         (mask, dist)
     }
+}
+
+/// An f32 bound not below `t_max`, for the fused slab test (the packet test's margin covers
+/// the rounding of [`t_max_f32`] its own way).
+#[inline(always)]
+fn t_limit(t_max: f64) -> f32 {
+    t_max_f32(t_max) * SLAB_UP + SLAB_ABS
 }
 
 /// `t_max` as f32; the slab margin covers its rounding.
@@ -753,7 +796,8 @@ mod tests {
         for i in 0..2000 {
             let origin = DVec3::new(next(), next(), next()) * 140.0 - 20.0;
             let dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
-            let r = RayF32::new(&Ray::new(origin, dir)).expect("an f32-safe ray");
+            let r =
+                RayF32::new(&Ray::new(origin, dir), reach(&bvh.bounds())).expect("an f32-safe ray");
             let t_max = if i % 2 == 0 { f64::INFINITY } else { 30.0 };
             for node in &bvh.nodes {
                 let sse = r.hit(node, t_max);

@@ -14,9 +14,9 @@ use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use super::{
-    farther, leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Fetch, Node, RayF32,
-    F32_SAFE, FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP, STACK_DEPTH,
-    SUBTREE_FETCH_SLOTS, WIDTH,
+    farther, leaf_mask, prefetch, reach, round_down, round_up, t_max_f32, Bvh, Fetch, Node, RayF32,
+    F32_SAFE, F32_SPAN, FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP,
+    STACK_DEPTH, SUBTREE_FETCH_SLOTS, WIDTH,
 };
 use glam::DVec3;
 
@@ -98,6 +98,19 @@ impl PacketBounds {
             }
         }
         Some(p)
+    }
+
+    /// Whether every ray of the packet is in range of the single-ray f32 test for a tree
+    /// reaching `reach` ([`reach`]): the packet's paths part into single rays, which must
+    /// then all have their f32 set-up.
+    fn spans_fit(&self, reach: [f64; 3]) -> bool {
+        (0..3).all(|a| {
+            let o = (self.o_lo[a] as f64).abs().max((self.o_hi[a] as f64).abs());
+            let inv = (self.inv_lo[a] as f64)
+                .abs()
+                .max((self.inv_hi[a] as f64).abs());
+            (reach[a] + o) * inv < F32_SPAN
+        })
     }
 
     /// Hit mask and entry distances (lower bounds over the packet) of a node's boxes: a
@@ -291,7 +304,8 @@ impl Bvh {
         if self.nodes.is_empty() || rays.is_empty() {
             return 0;
         }
-        let Some(packet) = PacketBounds::new(rays) else {
+        let reach = reach(&self.bounds());
+        let Some(packet) = PacketBounds::new(rays).filter(|p| p.spans_fit(reach)) else {
             let mut found = 0;
             for (i, ray) in rays.iter().enumerate() {
                 let leaf = |range, t: &mut f64| leaf(i, range, t);
@@ -430,6 +444,7 @@ impl Bvh {
         let mut singles = Singles {
             rays: [const { MaybeUninit::<RayF32>::uninit() }; PACKET],
             ready: false,
+            reach: reach(&self.bounds()),
         };
         // The rays that reach leaves at a node, with their leaf masks and entry distances:
         // all are fetched before the first is tested. Only the first `reach` are written.
@@ -650,6 +665,8 @@ impl Bvh {
 struct Singles {
     rays: [MaybeUninit<RayF32>; PACKET],
     ready: bool,
+    /// The tree's [`reach`].
+    reach: [f64; 3],
 }
 
 impl Singles {
@@ -658,7 +675,10 @@ impl Singles {
     fn all(&mut self, rays: &[Ray]) -> &[MaybeUninit<RayF32>; PACKET] {
         if !self.ready {
             for (s, ray) in self.rays.iter_mut().zip(rays) {
-                s.write(RayF32::new(ray).expect("PacketBounds::new checked the range"));
+                s.write(
+                    RayF32::new(ray, self.reach)
+                        .expect("PacketBounds::new and spans_fit checked the range"),
+                );
             }
             self.ready = true;
         }
@@ -708,20 +728,32 @@ mod tests {
             .collect()
     }
 
-    /// The leaves (by first slot) each ray of `rays` is handed, single-ray and packet.
-    fn leaves_met(bvh: &Bvh, rays: &[Ray], t_max: f64) -> (Vec<Vec<usize>>, Vec<Vec<usize>>) {
-        let single = rays
-            .iter()
-            .map(|r| {
-                let mut met = Vec::new();
-                bvh.traverse(r, &mut t_max.clone(), |range, _| {
-                    met.push(range.start);
-                    false
-                });
-                met.sort();
-                met
-            })
-            .collect();
+    /// Per ray, leaves by first slot.
+    type Met = Vec<Vec<usize>>;
+
+    /// The leaves (by first slot) each ray of `rays` truly meets (by the f64 slab test), and
+    /// those it is handed single-ray and in a packet. Both f32 walks are conservative, each
+    /// with its own margins, so each holds the first; neither need hold the other.
+    fn leaves_met(bvh: &Bvh, rays: &[Ray], t_max: f64) -> (Met, Met, Met) {
+        let walk = |exact: bool| -> Met {
+            rays.iter()
+                .map(|r| {
+                    let mut met = Vec::new();
+                    let leaf = |range: Range<usize>, _: &mut f64| {
+                        met.push(range.start);
+                        false
+                    };
+                    if exact {
+                        bvh.traverse_f64(r, &mut t_max.clone(), leaf);
+                    } else {
+                        bvh.traverse(r, &mut t_max.clone(), leaf);
+                    }
+                    met.sort();
+                    met
+                })
+                .collect()
+        };
+        let (exact, single) = (walk(true), walk(false));
         let mut packet = vec![Vec::new(); rays.len()];
         let mut limits = vec![t_max; rays.len()];
         bvh.traverse_packet(
@@ -733,7 +765,7 @@ mod tests {
         for p in &mut packet {
             p.sort();
         }
-        (single, packet)
+        (exact, single, packet)
     }
 
     #[test]
@@ -764,8 +796,8 @@ mod tests {
                     })
                     .collect();
                 for t_max in [f64::INFINITY, 12.0 * scale] {
-                    let (single, packet) = leaves_met(bvh, &rays, t_max);
-                    for (s, p) in single.iter().zip(&packet) {
+                    let (exact, _, packet) = leaves_met(bvh, &rays, t_max);
+                    for (s, p) in exact.iter().zip(&packet) {
                         assert!(
                             s.iter().all(|leaf| p.binary_search(leaf).is_ok()),
                             "scale {scale}, packet {k}: a leaf met alone was skipped"
@@ -824,15 +856,15 @@ mod tests {
                 Ray::new(eye, d.normalize())
             })
             .collect();
-        let (single, packet) = leaves_met(&bvh, &rays, f64::INFINITY);
+        let (exact, _, packet) = leaves_met(&bvh, &rays, f64::INFINITY);
         assert!(PacketBounds::new(&rays).is_some_and(|p| p.mixed == [true, true, false]));
-        assert!(single.iter().map(|s| s.len()).sum::<usize>() > 0);
-        for (s, p) in single.iter().zip(&packet) {
+        assert!(exact.iter().map(|s| s.len()).sum::<usize>() > 0);
+        for (s, p) in exact.iter().zip(&packet) {
             assert!(s.iter().all(|leaf| p.binary_search(leaf).is_ok()));
         }
         rays.push(Ray::new(eye, DVec3::Z));
         assert!(PacketBounds::new(&rays).is_none());
-        let (single, packet) = leaves_met(&bvh, &rays, f64::INFINITY);
+        let (_, single, packet) = leaves_met(&bvh, &rays, f64::INFINITY);
         assert_eq!(single, packet);
         assert!(PacketBounds::new(&[]).is_none());
     }
