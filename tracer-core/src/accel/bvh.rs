@@ -405,9 +405,9 @@ impl RayF32 {
             c_near: [0.0; 3],
             c_far: [0.0; 3],
         };
-        for a in 0..3 {
+        for (a, reach) in reach.into_iter().enumerate() {
             let (o, inv) = (ray.origin[a], ray.inv_dir[a]);
-            let span = (reach[a] + o.abs()) * inv.abs();
+            let span = (reach + o.abs()) * inv.abs();
             let ok = o.abs() < F32_SAFE
                 && inv.abs() < F32_SAFE
                 && inv.abs() > 1.0 / F32_SAFE
