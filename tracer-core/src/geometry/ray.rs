@@ -69,70 +69,27 @@ pub struct TriangleRay {
 impl TriangleRay {
     #[inline(always)]
     pub fn new(ray: &Ray) -> Self {
-        // Worked out without branches: which axis is largest, and the direction's sign on it,
-        // differ from ray to ray, and the branches on them mispredicted for incoherent rays.
         let a = ray.dir.abs();
-        let x_largest = (a.x >= a.y) & (a.x >= a.z);
-        let y_larger_than_z = a.y >= a.z;
-        // 0 where x is largest, else 1 for y, 2 for z (ties as x, then y).
-        let kz = (!x_largest as usize) * (2 - y_larger_than_z as usize);
-        let dir = ray.dir.to_array();
-        let dz = dir[kz];
+        let kz = if a.x >= a.y && a.x >= a.z {
+            0
+        } else if a.y >= a.z {
+            1
+        } else {
+            2
+        };
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
         // Keep the winding: swapping x and y when dir.z < 0 preserves the edge-function signs.
-        let swap = (dz < 0.0) as usize;
-        let (next, after) = ((kz + 1) % 3, (kz + 2) % 3);
-        let kx = next + swap * (after.wrapping_sub(next));
-        let ky = after + swap * (next.wrapping_sub(after));
+        if ray.dir[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        let dz = ray.dir[kz];
         Self {
             origin: ray.origin,
             kx,
             ky,
             kz,
-            shear: DVec3::new(dir[kx] / dz, dir[ky] / dz, 1.0 / dz),
+            shear: DVec3::new(ray.dir[kx] / dz, ray.dir[ky] / dz, 1.0 / dz),
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The branch-free axis choice picks what the plain rule picks: z is the largest |d|
-    /// (ties to x, then y), x and y follow it cyclically, swapped where d·z < 0.
-    #[test]
-    fn the_sheared_frame_is_the_largest_axis_with_the_winding_kept() {
-        let rule = |d: DVec3| {
-            let a = d.abs();
-            let kz = if a.x >= a.y && a.x >= a.z {
-                0
-            } else if a.y >= a.z {
-                1
-            } else {
-                2
-            };
-            let (kx, ky) = ((kz + 1) % 3, (kz + 2) % 3);
-            if d[kz] < 0.0 {
-                (ky, kx, kz)
-            } else {
-                (kx, ky, kz)
-            }
-        };
-        let values = [-2.0, -1.0, -0.5, -0.0, 0.0, 0.5, 1.0, 2.0];
-        let mut seen = std::collections::HashSet::new();
-        for x in values {
-            for y in values {
-                for z in values {
-                    let d = DVec3::new(x, y, z);
-                    if d == DVec3::ZERO {
-                        continue;
-                    }
-                    let t = TriangleRay::new(&Ray::new(DVec3::ZERO, d));
-                    assert_eq!((t.kx, t.ky, t.kz), rule(d), "direction {d}");
-                    seen.insert((t.kx, t.ky, t.kz));
-                }
-            }
-        }
-        // Every permutation occurs.
-        assert_eq!(seen.len(), 6);
     }
 }
