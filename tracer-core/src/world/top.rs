@@ -20,13 +20,18 @@ const WIDTH: usize = 8;
 const MAX_DEPTH: usize = 96;
 const STACK_DEPTH: usize = (WIDTH - 1) * MAX_DEPTH;
 
-/// Outward margins of the f32 slab test, as in the accel module: each slab distance is off by
-/// at most a few f32 rounding units, 2^-20 is sixteen; the absolute term covers subnormals.
-const SLAB_DOWN: f32 = 1.0 - 1.0 / (1u32 << 20) as f32;
+/// The f32 slab test's margins, as in the accel module (its `RayF32`): each plane's distance
+/// is one multiply-add `b·inv + c`, where `c` is `−o·inv` moved outward by 8u·span (u =
+/// 2^-24, span = (R + |o|)·|inv|, R bounding the boxes' coordinates), which covers every
+/// rounding; `t_max`'s rounding to f32 is covered by 2^-20 of itself and an absolute term.
+const SLAB_MARGIN: f64 = 8.0 / (1u64 << 24) as f64;
+const SLAB_MARGIN_ABS: f64 = 1e-30;
 const SLAB_UP: f32 = 1.0 + 1.0 / (1u32 << 20) as f32;
 const SLAB_ABS: f32 = 1e-37;
-/// Rays whose origin or inverse direction fall outside this range take the generic traversal.
+/// Rays whose origin or inverse direction fall outside this range, or whose span on an axis
+/// reaches `F32_SPAN`, take the generic traversal.
 const F32_SAFE: f64 = 1e30;
+const F32_SPAN: f64 = 1e30;
 
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
@@ -46,6 +51,8 @@ struct TopNode {
 #[derive(Clone, Debug, Default)]
 pub(super) struct TopLevel {
     nodes: Vec<TopNode>,
+    /// Per axis, a bound on the magnitude of every box coordinate (see [`SLAB_MARGIN`]).
+    reach: [f64; 3],
 }
 
 impl TopLevel {
@@ -55,7 +62,11 @@ impl TopLevel {
             "BVH deeper than the builder's limit"
         );
         let nodes = bvh.nodes.iter().map(TopNode::from_node).collect();
-        TopLevel { nodes }
+        // The f32 boxes are the f64 bounds rounded outward, by at most an f32 unit.
+        let bounds = bvh.bounds();
+        let r = bounds.min.abs().max(bounds.max.abs());
+        let reach = [r.x, r.y, r.z].map(|v| v * (1.0 + 1.0 / (1u32 << 20) as f64) + 1e-30);
+        TopLevel { nodes, reach }
     }
 
     /// Hands `leaf` the slots of every leaf the ray may reach before `*t_max` (which `leaf`
@@ -69,10 +80,10 @@ impl TopLevel {
         t_max: &mut f64,
         mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
     ) -> Option<bool> {
-        let r = SlabRay::new(ray)?;
         if self.nodes.is_empty() {
             return Some(false);
         }
+        let r = SlabRay::new(ray, self.reach)?;
         // Left uninitialised: only slots below `top`, each written first, are read.
         let mut stack = [const { MaybeUninit::<(u32, f32)>::uninit() }; STACK_DEPTH];
         let mut top = 0;
@@ -230,40 +241,39 @@ impl TopNode {
 struct SlabRay {
     near: [usize; 3],
     far: [usize; 3],
-    o_near: [f32; 3],
-    o_far: [f32; 3],
     inv: [f32; 3],
+    c_near: [f32; 3],
+    c_far: [f32; 3],
 }
 
 impl SlabRay {
     #[inline(always)]
-    fn new(ray: &Ray) -> Option<SlabRay> {
+    fn new(ray: &Ray, reach: [f64; 3]) -> Option<SlabRay> {
         let o = ray.origin.to_array();
         let inv = ray.inv_dir.to_array();
         let mut r = SlabRay {
             near: [0; 3],
             far: [0; 3],
-            o_near: [0.0; 3],
-            o_far: [0.0; 3],
             inv: [0.0; 3],
+            c_near: [0.0; 3],
+            c_far: [0.0; 3],
         };
         let mut ok = true;
-        for a in 0..3 {
+        for (a, reach) in reach.into_iter().enumerate() {
             let (o, inv) = (o[a], inv[a]);
-            // `&` rather than `&&`: three compares, no branches.
-            ok &= (o.abs() < F32_SAFE) & (inv.abs() < F32_SAFE) & (inv.abs() > 1.0 / F32_SAFE);
-            // Moved outward by 2^-22 of itself before rounding to nearest (at most 2^-24 of
-            // itself), and by 1e-37 for f32's subnormal spacing: `lo` ≤ o ≤ `hi`, without
-            // the branches of an exact directed rounding (the box is a few ulps looser).
-            let margin = o.abs() * (1.0 / (1u64 << 22) as f64) + 1e-37;
-            let lo = (o - margin) as f32;
-            let hi = (o + margin) as f32;
+            let span = (reach + o.abs()) * inv.abs();
+            // `&` rather than `&&`: four compares, no branches.
+            ok &= (o.abs() < F32_SAFE)
+                & (inv.abs() < F32_SAFE)
+                & (inv.abs() > 1.0 / F32_SAFE)
+                & (span < F32_SPAN);
+            // Rounded to nearest, inside the margin (see `SLAB_MARGIN`).
+            let margin = SLAB_MARGIN * span + SLAB_MARGIN_ABS;
+            r.c_near[a] = (-o * inv - margin) as f32;
+            r.c_far[a] = (-o * inv + margin) as f32;
             let negative = inv < 0.0;
             r.near[a] = 2 * a + negative as usize;
             r.far[a] = 2 * a + 1 - negative as usize;
-            // Near plane: the larger origin makes its distance smaller; far: the smaller.
-            r.o_near[a] = if negative { lo } else { hi };
-            r.o_far[a] = if negative { hi } else { lo };
             r.inv[a] = inv as f32;
         }
         ok.then_some(r)
@@ -282,29 +292,25 @@ impl SlabRay {
         // SAFETY: AVX is enabled for the whole build (cfg above); the loads read a row's
         // eight f32s and the store writes `dist`'s eight.
         unsafe {
-            let plane = |r: &[f32; WIDTH], o: f32, inv: f32| {
-                _mm256_mul_ps(
-                    _mm256_sub_ps(_mm256_loadu_ps(r.as_ptr()), _mm256_set1_ps(o)),
-                    _mm256_set1_ps(inv),
-                )
+            let plane = |r: &[f32; WIDTH], inv: f32, c: f32| {
+                let b = _mm256_loadu_ps(r.as_ptr());
+                #[cfg(target_feature = "fma")]
+                return _mm256_fmadd_ps(b, _mm256_set1_ps(inv), _mm256_set1_ps(c));
+                #[cfg(not(target_feature = "fma"))]
+                return _mm256_add_ps(_mm256_mul_ps(b, _mm256_set1_ps(inv)), _mm256_set1_ps(c));
             };
-            let nx = plane(row(self.near[0]), self.o_near[0], self.inv[0]);
-            let ny = plane(row(self.near[1]), self.o_near[1], self.inv[1]);
-            let nz = plane(row(self.near[2]), self.o_near[2], self.inv[2]);
-            let fx = plane(row(self.far[0]), self.o_far[0], self.inv[0]);
-            let fy = plane(row(self.far[1]), self.o_far[1], self.inv[1]);
-            let fz = plane(row(self.far[2]), self.o_far[2], self.inv[2]);
-            let t_far = _mm256_set1_ps(t_max as f32);
+            let nx = plane(row(self.near[0]), self.inv[0], self.c_near[0]);
+            let ny = plane(row(self.near[1]), self.inv[1], self.c_near[1]);
+            let nz = plane(row(self.near[2]), self.inv[2], self.c_near[2]);
+            let fx = plane(row(self.far[0]), self.inv[0], self.c_far[0]);
+            let fy = plane(row(self.far[1]), self.inv[1], self.c_far[1]);
+            let fz = plane(row(self.far[2]), self.inv[2], self.c_far[2]);
+            let t_far = _mm256_set1_ps(t_limit(t_max));
             let near = _mm256_max_ps(
                 _mm256_max_ps(nx, ny),
                 _mm256_max_ps(nz, _mm256_setzero_ps()),
             );
             let far = _mm256_min_ps(_mm256_min_ps(fx, fy), _mm256_min_ps(fz, t_far));
-            let near = _mm256_mul_ps(near, _mm256_set1_ps(SLAB_DOWN));
-            let far = _mm256_add_ps(
-                _mm256_mul_ps(far, _mm256_set1_ps(SLAB_UP)),
-                _mm256_set1_ps(SLAB_ABS),
-            );
             let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32;
             _mm256_storeu_ps(dist.as_mut_ptr(), near);
             (mask, dist)
@@ -331,24 +337,23 @@ impl SlabRay {
         // SAFETY: SSE is part of the x86_64 baseline; the loads read four f32s of a row of
         // eight at offset 0 or 4, and the store writes four of `dist`'s eight there.
         unsafe {
-            let t_far = _mm_set1_ps(t_max as f32);
+            let t_far = _mm_set1_ps(t_limit(t_max));
             for half in [0, 4] {
-                let plane = |r: &[f32; WIDTH], o: f32, inv: f32| {
-                    _mm_mul_ps(
-                        _mm_sub_ps(_mm_loadu_ps(r.as_ptr().add(half)), _mm_set1_ps(o)),
-                        _mm_set1_ps(inv),
-                    )
+                let plane = |r: &[f32; WIDTH], inv: f32, c: f32| {
+                    let b = _mm_loadu_ps(r.as_ptr().add(half));
+                    #[cfg(target_feature = "fma")]
+                    return _mm_fmadd_ps(b, _mm_set1_ps(inv), _mm_set1_ps(c));
+                    #[cfg(not(target_feature = "fma"))]
+                    return _mm_add_ps(_mm_mul_ps(b, _mm_set1_ps(inv)), _mm_set1_ps(c));
                 };
-                let nx = plane(row(self.near[0]), self.o_near[0], self.inv[0]);
-                let ny = plane(row(self.near[1]), self.o_near[1], self.inv[1]);
-                let nz = plane(row(self.near[2]), self.o_near[2], self.inv[2]);
-                let fx = plane(row(self.far[0]), self.o_far[0], self.inv[0]);
-                let fy = plane(row(self.far[1]), self.o_far[1], self.inv[1]);
-                let fz = plane(row(self.far[2]), self.o_far[2], self.inv[2]);
+                let nx = plane(row(self.near[0]), self.inv[0], self.c_near[0]);
+                let ny = plane(row(self.near[1]), self.inv[1], self.c_near[1]);
+                let nz = plane(row(self.near[2]), self.inv[2], self.c_near[2]);
+                let fx = plane(row(self.far[0]), self.inv[0], self.c_far[0]);
+                let fy = plane(row(self.far[1]), self.inv[1], self.c_far[1]);
+                let fz = plane(row(self.far[2]), self.inv[2], self.c_far[2]);
                 let near = _mm_max_ps(_mm_max_ps(nx, ny), _mm_max_ps(nz, _mm_setzero_ps()));
                 let far = _mm_min_ps(_mm_min_ps(fx, fy), _mm_min_ps(fz, t_far));
-                let near = _mm_mul_ps(near, _mm_set1_ps(SLAB_DOWN));
-                let far = _mm_add_ps(_mm_mul_ps(far, _mm_set1_ps(SLAB_UP)), _mm_set1_ps(SLAB_ABS));
                 mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << half;
                 _mm_storeu_ps(dist.as_mut_ptr().add(half), near);
             }
@@ -360,20 +365,18 @@ impl SlabRay {
     #[inline(always)]
     fn hit(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
         let b = &node.bounds;
-        let t_max = t_max as f32;
+        let t_max = t_limit(t_max);
         let mut mask = 0;
         let mut dist = [0f32; WIDTH];
         for c in 0..WIDTH {
             let mut near = 0f32;
             let mut far = t_max;
             for a in 0..3 {
-                let tn = (b[self.near[a] % 6][c] - self.o_near[a]) * self.inv[a];
-                let tf = (b[self.far[a] % 6][c] - self.o_far[a]) * self.inv[a];
+                let tn = b[self.near[a] % 6][c] * self.inv[a] + self.c_near[a];
+                let tf = b[self.far[a] % 6][c] * self.inv[a] + self.c_far[a];
                 near = if tn > near { tn } else { near };
                 far = if tf < far { tf } else { far };
             }
-            let near = near * SLAB_DOWN;
-            let far = far * SLAB_UP + SLAB_ABS;
             if near <= far {
                 mask |= 1 << c;
             }
@@ -381,6 +384,12 @@ impl SlabRay {
         }
         (mask, dist)
     }
+}
+
+/// An f32 bound not below `t_max`.
+#[inline(always)]
+fn t_limit(t_max: f64) -> f32 {
+    t_max as f32 * SLAB_UP + SLAB_ABS
 }
 
 #[cfg(test)]
@@ -415,7 +424,7 @@ mod tests {
                     dir.y = 1e-20;
                 }
                 let ray = Ray::new(origin, dir.normalize());
-                let slab = SlabRay::new(&ray).expect("in range");
+                let slab = SlabRay::new(&ray, top.reach).expect("in range");
                 let t_max = if i % 2 == 0 {
                     f64::INFINITY
                 } else {
@@ -449,9 +458,19 @@ mod tests {
             let bvh = Bvh::build(&prims);
             let top = TopLevel::new(&bvh);
             for i in 0..400 {
+                // Aim at a corner, an edge or a face of some box as often as inside it: the
+                // grazing rays are the ones an f32 rounding could turn away.
                 let target = prims[i % prims.len()];
-                let aim =
-                    target.min + (target.max - target.min) * DVec3::new(next(), next(), next());
+                let pick = |k: f64, a: f64, b: f64| match (k * 3.0) as u32 {
+                    0 => a,
+                    1 => b,
+                    _ => a + (b - a) * k,
+                };
+                let aim = DVec3::new(
+                    pick(next(), target.min.x, target.max.x),
+                    pick(next(), target.min.y, target.max.y),
+                    pick(next(), target.min.z, target.max.z),
+                );
                 let dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
                 let origin = aim - dir * scale * 10f64.powf(next() * 4.0 - 1.0);
                 let ray = Ray::new(origin, dir);
