@@ -37,6 +37,12 @@ pub struct PacketBounds {
     o_hi: [f32; 3],
     inv_lo: [f32; 3],
     inv_hi: [f32; 3],
+    /// Per axis, the end of the origins' range that gives the smallest entry distance
+    /// (`o_hi` where the directions are positive, `o_lo` where negative), and the one that
+    /// gives the largest exit distance: with the directions' sign known, two of the four
+    /// products of interval ends are never the extreme ones (see [`PacketBounds::slab`]).
+    o_enter: [f32; 3],
+    o_exit: [f32; 3],
     /// Axes along which the directions differ in sign: they bound nothing (a lower bound of
     /// 0 on entry, none on exit), which keeps the test conservative.
     mixed: [bool; 3],
@@ -56,6 +62,8 @@ impl PacketBounds {
             o_hi: [0.0; 3],
             inv_lo: [0.0; 3],
             inv_hi: [0.0; 3],
+            o_enter: [0.0; 3],
+            o_exit: [0.0; 3],
             mixed: [false; 3],
         };
         // One pass over the rays with plain comparisons (`f64::min` handles NaN at a few
@@ -91,8 +99,10 @@ impl PacketBounds {
             p.inv_hi[a] = round_up(i_hi[a]);
             if i_lo[a] > 0.0 {
                 (p.near[a], p.far[a]) = (2 * a, 2 * a + 1);
+                (p.o_enter[a], p.o_exit[a]) = (p.o_hi[a], p.o_lo[a]);
             } else if i_hi[a] < 0.0 {
                 (p.near[a], p.far[a]) = (2 * a + 1, 2 * a);
+                (p.o_enter[a], p.o_exit[a]) = (p.o_lo[a], p.o_hi[a]);
             } else {
                 p.mixed[a] = true;
             }
@@ -172,19 +182,12 @@ impl PacketBounds {
                         _mm256_set1_ps(self.inv_lo[a]),
                         _mm256_set1_ps(self.inv_hi[a]),
                     );
-                    let (o0, o1) = (_mm256_set1_ps(self.o_hi[a]), _mm256_set1_ps(self.o_lo[a]));
                     let bn = _mm256_loadu_ps(b[self.near[a]].as_ptr().add(half));
                     let bf = _mm256_loadu_ps(b[self.far[a]].as_ptr().add(half));
-                    let (n0, n1) = (_mm256_sub_ps(bn, o0), _mm256_sub_ps(bn, o1));
-                    let (f0, f1) = (_mm256_sub_ps(bf, o0), _mm256_sub_ps(bf, o1));
-                    let tn = _mm256_min_ps(
-                        _mm256_min_ps(_mm256_mul_ps(n0, i0), _mm256_mul_ps(n0, i1)),
-                        _mm256_min_ps(_mm256_mul_ps(n1, i0), _mm256_mul_ps(n1, i1)),
-                    );
-                    let tf = _mm256_max_ps(
-                        _mm256_max_ps(_mm256_mul_ps(f0, i0), _mm256_mul_ps(f0, i1)),
-                        _mm256_max_ps(_mm256_mul_ps(f1, i0), _mm256_mul_ps(f1, i1)),
-                    );
+                    let n = _mm256_sub_ps(bn, _mm256_set1_ps(self.o_enter[a]));
+                    let f = _mm256_sub_ps(bf, _mm256_set1_ps(self.o_exit[a]));
+                    let tn = _mm256_min_ps(_mm256_mul_ps(n, i0), _mm256_mul_ps(n, i1));
+                    let tf = _mm256_max_ps(_mm256_mul_ps(f, i0), _mm256_mul_ps(f, i1));
                     near = _mm256_max_ps(near, tn);
                     far = _mm256_min_ps(far, tf);
                 }
@@ -223,14 +226,18 @@ impl PacketBounds {
 
     /// Lower bound of entry and upper bound of exit over the packet for the planes at
     /// `near` and `far` on axis `a` (not mixed), as [`PacketBounds::hit`] bounds them.
+    ///
+    /// Of the four products of the interval ends (plane − origin) × inverse direction, the
+    /// smallest entry has the origin end `o_enter`: with every inverse direction of one sign,
+    /// the product falls as the origin moves toward the plane's far side, and rounding keeps
+    /// that order. So only its two products are made, and the same for the exit (the same
+    /// bounds as all four gave, at half the operations).
     #[inline(always)]
     fn slab(&self, a: usize, near: f32, far: f32) -> (f32, f32) {
         let (i0, i1) = (self.inv_lo[a], self.inv_hi[a]);
-        let (n0, n1) = (near - self.o_hi[a], near - self.o_lo[a]);
-        let (f0, f1) = (far - self.o_hi[a], far - self.o_lo[a]);
-        let tn = (n0 * i0).min(n0 * i1).min((n1 * i0).min(n1 * i1));
-        let tf = (f0 * i0).max(f0 * i1).max((f1 * i0).max(f1 * i1));
-        (tn, tf)
+        let n = near - self.o_enter[a];
+        let f = far - self.o_exit[a];
+        ((n * i0).min(n * i1), (f * i0).max(f * i1))
     }
 }
 
@@ -867,6 +874,41 @@ mod tests {
         let (_, single, packet) = leaves_met(&bvh, &rays, f64::INFINITY);
         assert_eq!(single, packet);
         assert!(PacketBounds::new(&[]).is_none());
+    }
+
+    #[test]
+    fn the_two_product_slab_bounds_are_the_four_product_ones() {
+        let mut next = crate::test_rng::uniform(4242);
+        let mut axes = 0;
+        for k in 0..300 {
+            let scale = [1e-3, 1.0, 1e3][k % 3];
+            // Scattered origins, directions within a cone (so most axes are not mixed).
+            let base = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
+            let rays: Vec<Ray> = (0..1 + k % PACKET)
+                .map(|_| {
+                    let o = DVec3::new(next(), next(), next()) * scale * (k % 2) as f64;
+                    let d = base + DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * 0.2;
+                    Ray::new(o, d.normalize())
+                })
+                .collect();
+            let Some(p) = PacketBounds::new(&rays) else {
+                continue;
+            };
+            for a in (0..3).filter(|&a| !p.mixed[a]) {
+                axes += 1;
+                for _ in 0..20 {
+                    let (near, far) = ((next() - 0.5) as f32 * 4.0, (next() - 0.5) as f32 * 4.0);
+                    let (near, far) = (near * scale as f32, far * scale as f32);
+                    let (i0, i1) = (p.inv_lo[a], p.inv_hi[a]);
+                    let (n0, n1) = (near - p.o_hi[a], near - p.o_lo[a]);
+                    let (f0, f1) = (far - p.o_hi[a], far - p.o_lo[a]);
+                    let tn = (n0 * i0).min(n0 * i1).min((n1 * i0).min(n1 * i1));
+                    let tf = (f0 * i0).max(f0 * i1).max((f1 * i0).max(f1 * i1));
+                    assert_eq!(p.slab(a, near, far), (tn, tf), "axis {a} of packet {k}");
+                }
+            }
+        }
+        assert!(axes > 300, "{axes} axes checked");
     }
 
     #[test]
