@@ -228,10 +228,10 @@ impl PacketBounds {
     /// `near` and `far` on axis `a` (not mixed), as [`PacketBounds::hit`] bounds them.
     ///
     /// Of the four products of the interval ends (plane − origin) × inverse direction, the
-    /// smallest entry has the origin end `o_enter`: with every inverse direction of one sign,
-    /// the product falls as the origin moves toward the plane's far side, and rounding keeps
-    /// that order. So only its two products are made, and the same for the exit (the same
-    /// bounds as all four gave, at half the operations).
+    /// smallest comes from the origin end `o_enter`: with every inverse direction of one sign,
+    /// the product moves monotonically with the origin, and rounding keeps that order. So only
+    /// that end's two products are made, and likewise `o_exit`'s for the exit: the bounds all
+    /// four gave, at half the operations.
     #[inline(always)]
     fn slab(&self, a: usize, near: f32, far: f32) -> (f32, f32) {
         let (i0, i1) = (self.inv_lo[a], self.inv_hi[a]);
