@@ -1293,32 +1293,7 @@ impl World {
                     bary: h.bary,
                 })
             }
-            Object::Model(i) => {
-                let model = &self.models[i as usize];
-                let mesh = &self.meshes[model.mesh as usize];
-                let local = model.transform.ray_to_local(ray);
-                let tri_ray = TriangleRay::new(&local);
-                let ray32 = TriangleRayF32::new(&tri_ray);
-                let mut found = None;
-                let mut limit = t_max;
-                let leaf = |tris: std::ops::Range<usize>, t_max: &mut f64| {
-                    mesh_leaf::<ANY>(
-                        mesh,
-                        (&tri_ray, &ray32),
-                        tris,
-                        t_min,
-                        t_max,
-                        skip_prim,
-                        &mut found,
-                    )
-                };
-                if ANY {
-                    mesh.bvh.traverse_any(&local, &mut limit, leaf);
-                } else {
-                    mesh.bvh.traverse(&local, &mut limit, leaf);
-                }
-                found
-            }
+            Object::Model(i) => self.hit_model::<ANY>(i, ray, t_min, t_max, skip_prim),
             Object::Mover(i) => self.hit_mover::<ANY>(i, ray, t_min, t_max),
             Object::ModelTriangle(i) => {
                 let t = &self.model_triangles[i as usize];
@@ -1331,6 +1306,45 @@ impl World {
                 })
             }
         }
+    }
+
+    /// A mesh model's hit: the ray taken into the mesh's space and its BVH walked. Out of
+    /// line: inlined, the mesh walk's set-up shared the register allocation of every caller
+    /// of [`World::hit_object`], and the sphere and triangle paths' speed moved with changes
+    /// to code they never run.
+    #[inline(never)]
+    fn hit_model<const ANY: bool>(
+        &self,
+        index: u32,
+        ray: &Ray,
+        t_min: f64,
+        t_max: f64,
+        skip_prim: u32,
+    ) -> Option<ObjectHit> {
+        let model = &self.models[index as usize];
+        let mesh = &self.meshes[model.mesh as usize];
+        let local = model.transform.ray_to_local(ray);
+        let tri_ray = TriangleRay::new(&local);
+        let ray32 = TriangleRayF32::new(&tri_ray);
+        let mut found = None;
+        let mut limit = t_max;
+        let leaf = |tris: std::ops::Range<usize>, t_max: &mut f64| {
+            mesh_leaf::<ANY>(
+                mesh,
+                (&tri_ray, &ray32),
+                tris,
+                t_min,
+                t_max,
+                skip_prim,
+                &mut found,
+            )
+        };
+        if ANY {
+            mesh.bvh.traverse_any(&local, &mut limit, leaf);
+        } else {
+            mesh.bvh.traverse(&local, &mut limit, leaf);
+        }
+        found
     }
 
     /// A moving object's hit, the ray taken into its local space at the ray's time.
