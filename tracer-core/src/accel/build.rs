@@ -202,6 +202,7 @@ impl Bvh {
             nodes: out.nodes,
             order: out.order,
             bounds: Some(root_bounds),
+            reach: super::bvh::reach(&root_bounds),
             depth: out.depth,
             spans: Vec::new(),
         }

@@ -36,6 +36,10 @@ pub struct Bvh {
     /// `order[i]` is the original index of the primitive the owner must store at slot i.
     pub order: Vec<u32>,
     pub(super) bounds: Option<Aabb>,
+    /// Per axis, a bound on every box coordinate's magnitude (from `bounds`, see
+    /// [`reach`]): the f32 slab test's margin scales with it, and it is made once here
+    /// rather than for every ray.
+    pub(super) reach: [f64; 3],
     pub(super) depth: usize,
     /// Per node, when made by [`Bvh::with_spans`]: the first and one past the last primitive
     /// slot of the leaves below it, so that packet traversal can have a small subtree's
@@ -75,6 +79,12 @@ const F32_SAFE: f64 = 1e30;
 impl Bvh {
     pub fn bounds(&self) -> Aabb {
         self.bounds.unwrap_or(Aabb::EMPTY)
+    }
+
+    /// Per axis, a bound on the magnitude of every box coordinate of the tree (its f32
+    /// boxes included), which scales the f32 slab tests' margins.
+    pub fn reach(&self) -> [f64; 3] {
+        self.reach
     }
 
     pub fn depth(&self) -> usize {
@@ -147,7 +157,7 @@ impl Bvh {
         if self.nodes.is_empty() {
             return false;
         }
-        match RayF32::new(ray, reach(&self.bounds())) {
+        match RayF32::new(ray, self.reach) {
             Some(r) => {
                 #[cfg(target_arch = "x86_64")]
                 if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
@@ -176,7 +186,7 @@ impl Bvh {
         if self.nodes.is_empty() {
             return false;
         }
-        match RayF32::new(ray, reach(&self.bounds())) {
+        match RayF32::new(ray, self.reach) {
             Some(r) => {
                 #[cfg(target_arch = "x86_64")]
                 if WIDTH.is_multiple_of(8) && std::arch::is_x86_feature_detected!("avx2") {
@@ -388,7 +398,7 @@ const F32_SPAN: f64 = 1e30;
 /// Per axis, a bound on the magnitude of every box coordinate of a tree whose primitives'
 /// bounds are `bounds` (its f32 boxes are rounded outward by at most an f32 unit).
 #[inline(always)]
-fn reach(bounds: &Aabb) -> [f64; 3] {
+pub(super) fn reach(bounds: &Aabb) -> [f64; 3] {
     let r = bounds.min.abs().max(bounds.max.abs());
     [r.x, r.y, r.z].map(|v| v * (1.0 + 1.0 / (1u32 << 20) as f64) + 1e-30)
 }
@@ -796,8 +806,7 @@ mod tests {
         for i in 0..2000 {
             let origin = DVec3::new(next(), next(), next()) * 140.0 - 20.0;
             let dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
-            let r =
-                RayF32::new(&Ray::new(origin, dir), reach(&bvh.bounds())).expect("an f32-safe ray");
+            let r = RayF32::new(&Ray::new(origin, dir), bvh.reach).expect("an f32-safe ray");
             let t_max = if i % 2 == 0 { f64::INFINITY } else { 30.0 };
             for node in &bvh.nodes {
                 let sse = r.hit(node, t_max);

@@ -62,11 +62,10 @@ impl TopLevel {
             "BVH deeper than the builder's limit"
         );
         let nodes = bvh.nodes.iter().map(TopNode::from_node).collect();
-        // The f32 boxes are the f64 bounds rounded outward, by at most an f32 unit.
-        let bounds = bvh.bounds();
-        let r = bounds.min.abs().max(bounds.max.abs());
-        let reach = [r.x, r.y, r.z].map(|v| v * (1.0 + 1.0 / (1u32 << 20) as f64) + 1e-30);
-        TopLevel { nodes, reach }
+        TopLevel {
+            nodes,
+            reach: bvh.reach(),
+        }
     }
 
     /// Hands `leaf` the slots of every leaf the ray may reach before `*t_max` (which `leaf`

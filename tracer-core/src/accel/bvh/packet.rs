@@ -14,7 +14,7 @@ use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use super::{
-    farther, leaf_mask, prefetch, reach, round_down, round_up, t_max_f32, Bvh, Fetch, Node, RayF32,
+    farther, leaf_mask, prefetch, round_down, round_up, t_max_f32, Bvh, Fetch, Node, RayF32,
     F32_SAFE, F32_SPAN, FARTHEST_FIRST, NEAREST_FIRST, NO_CHILD, SLAB_ABS, SLAB_DOWN, SLAB_UP,
     STACK_DEPTH, SUBTREE_FETCH_SLOTS, WIDTH,
 };
@@ -311,8 +311,7 @@ impl Bvh {
         if self.nodes.is_empty() || rays.is_empty() {
             return 0;
         }
-        let reach = reach(&self.bounds());
-        let Some(packet) = PacketBounds::new(rays).filter(|p| p.spans_fit(reach)) else {
+        let Some(packet) = PacketBounds::new(rays).filter(|p| p.spans_fit(self.reach)) else {
             let mut found = 0;
             for (i, ray) in rays.iter().enumerate() {
                 let leaf = |range, t: &mut f64| leaf(i, range, t);
@@ -451,7 +450,7 @@ impl Bvh {
         let mut singles = Singles {
             rays: [const { MaybeUninit::<RayF32>::uninit() }; PACKET],
             ready: false,
-            reach: reach(&self.bounds()),
+            reach: self.reach,
         };
         // The rays that reach leaves at a node, with their leaf masks and entry distances:
         // all are fetched before the first is tested. Only the first `reach` are written.
