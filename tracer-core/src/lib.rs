@@ -23,6 +23,7 @@
 
 pub mod accel;
 pub mod adaptive;
+pub mod alloc;
 #[cfg(feature = "bench")]
 pub mod bench;
 pub mod camera;

@@ -9,6 +9,11 @@ use clap::{CommandFactory, Parser};
 use protocol::client::Client;
 use worker::{available_cores, SceneCache, Shutdown, Worker, WorkerConfig};
 
+/// Every allocation on cache lines of its own: no false sharing between render threads
+/// (see [`tracer_core::alloc`]).
+#[global_allocator]
+static ALLOC: tracer_core::alloc::OwnLines = tracer_core::alloc::OwnLines;
+
 #[derive(Parser, Debug)]
 #[command(
     name = "worker",

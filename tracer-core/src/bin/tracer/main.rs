@@ -16,6 +16,11 @@ use tracer_core::report::ReportError;
 use tracer_core::settings::numbered_path;
 use tracer_core::{Image, RenderError, RenderSettings, Renderer, Scene};
 
+/// Every allocation on cache lines of its own: no false sharing between render threads
+/// (see [`tracer_core::alloc`]).
+#[global_allocator]
+static ALLOC: tracer_core::alloc::OwnLines = tracer_core::alloc::OwnLines;
+
 #[derive(Parser)]
 #[command(
     name = "tracer",
