@@ -10,7 +10,7 @@
 
 use std::mem::MaybeUninit;
 
-use crate::accel::{Bvh, Node};
+use crate::accel::{t_limit, Bvh, Node, RayF32};
 use crate::geometry::Ray;
 
 /// Children per top-level node.
@@ -20,18 +20,8 @@ const WIDTH: usize = 8;
 const MAX_DEPTH: usize = 96;
 const STACK_DEPTH: usize = (WIDTH - 1) * MAX_DEPTH;
 
-/// The f32 slab test's margins, as in the accel module (its `RayF32`): each plane's distance
-/// is one multiply-add `b·inv + c`, where `c` is `−o·inv` moved outward by 8u·span (u =
-/// 2^-24, span = (R + |o|)·|inv|, R bounding the boxes' coordinates), which covers every
-/// rounding; `t_max`'s rounding to f32 is covered by 2^-20 of itself and an absolute term.
-const SLAB_MARGIN: f64 = 8.0 / (1u64 << 24) as f64;
-const SLAB_MARGIN_ABS: f64 = 1e-30;
-const SLAB_UP: f32 = 1.0 + 1.0 / (1u32 << 20) as f32;
-const SLAB_ABS: f32 = 1e-37;
-/// Rays whose origin or inverse direction fall outside this range, or whose span on an axis
-/// reaches `F32_SPAN`, take the generic traversal.
-const F32_SAFE: f64 = 1e30;
-const F32_SPAN: f64 = 1e30;
+/// The slab test's margins are the mesh walk's: see [`RayF32`] for the per-ray set-up and
+/// [`t_limit`] for `t_max`'s rounding.
 
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
@@ -89,7 +79,7 @@ impl TopLevel {
         let mut index = 0usize;
         loop {
             let node = &self.nodes[index];
-            let (mask, dist) = r.hit(node, *t_max);
+            let (mask, dist) = r.hit_top(node, *t_max);
             let mut leaves = mask & node.leaves;
             let mut inner = mask & !leaves;
             while leaves != 0 {
@@ -234,142 +224,17 @@ impl TopNode {
     }
 }
 
-/// Per-ray constants of the f32 slab test: per axis, the rows of the node's bounds holding
-/// the near and far planes (chosen by the direction's sign), the origin rounded outward for
-/// each (so that rounding never culls a true hit) and the inverse direction. The f32 rows
-/// hold a fourth, unused lane, so that the vector set-up stores each in one instruction.
-#[derive(Debug, PartialEq)]
-struct SlabRay {
-    near: [usize; 3],
-    far: [usize; 3],
-    inv: [f32; 4],
-    c_near: [f32; 4],
-    c_far: [f32; 4],
-}
+/// The f32 slab test's per-ray constants: the mesh walk's ([`RayF32`]), with the top level's
+/// own node tests below.
+type SlabRay = RayF32;
 
 impl SlabRay {
-    /// The set-up for a tree reaching `reach`, or None where the ray is out of the f32
-    /// test's range. Every shadow and mirror ray of a course scene makes one, so the three
-    /// axes are worked in the lanes of two 128-bit f64 vectors, (x, y) and (z, unused), with
-    /// the same operations per lane as the scalar form and so the same bits (2–3% fewer
-    /// instructions a spheres.scene or stacks.scene sample). One 256-bit vector was 1.5%
-    /// slower on one thread and 10% slower on two (docs/performance.md).
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
-    #[inline(always)]
-    fn new(ray: &Ray, reach: [f64; 3]) -> Option<SlabRay> {
-        use std::arch::x86_64::*;
-        // SAFETY: AVX is enabled for the whole build (cfg above); the stores write the four
-        // lanes of four-element arrays.
-        unsafe {
-            let (o, inv) = (ray.origin, ray.inv_dir);
-            // Two halves: (x, y) and (z, unused); the unused lane passes every check.
-            let o = [_mm_setr_pd(o.x, o.y), _mm_setr_pd(o.z, 0.0)];
-            let inv = [_mm_setr_pd(inv.x, inv.y), _mm_setr_pd(inv.z, 1.0)];
-            let reach = [_mm_setr_pd(reach[0], reach[1]), _mm_setr_pd(reach[2], 0.0)];
-            let sign = _mm_set1_pd(-0.0);
-            let below = |a, b| _mm_cmplt_pd(a, b);
-            let mut ok = 0;
-            let mut negative = 0usize;
-            let mut c_near = [_mm_setzero_pd(); 2];
-            let mut c_far = [_mm_setzero_pd(); 2];
-            for h in 0..2 {
-                let abs_o = _mm_andnot_pd(sign, o[h]);
-                let abs_inv = _mm_andnot_pd(sign, inv[h]);
-                let span = _mm_mul_pd(_mm_add_pd(reach[h], abs_o), abs_inv);
-                let fine = _mm_and_pd(
-                    _mm_and_pd(
-                        below(abs_o, _mm_set1_pd(F32_SAFE)),
-                        below(abs_inv, _mm_set1_pd(F32_SAFE)),
-                    ),
-                    _mm_and_pd(
-                        below(_mm_set1_pd(1.0 / F32_SAFE), abs_inv),
-                        below(span, _mm_set1_pd(F32_SPAN)),
-                    ),
-                );
-                ok |= _mm_movemask_pd(fine) << (2 * h);
-                negative |= (_mm_movemask_pd(below(inv[h], _mm_setzero_pd())) as usize) << (2 * h);
-                let margin = _mm_add_pd(
-                    _mm_mul_pd(_mm_set1_pd(SLAB_MARGIN), span),
-                    _mm_set1_pd(SLAB_MARGIN_ABS),
-                );
-                let offset = _mm_mul_pd(_mm_xor_pd(o[h], sign), inv[h]);
-                c_near[h] = _mm_sub_pd(offset, margin);
-                c_far[h] = _mm_add_pd(offset, margin);
-            }
-            if ok != 0b1111 {
-                return None;
-            }
-            let to_f32 = |v: [__m128d; 2]| _mm_movelh_ps(_mm_cvtpd_ps(v[0]), _mm_cvtpd_ps(v[1]));
-            let mut r = SlabRay {
-                near: [0; 3],
-                far: [0; 3],
-                inv: [0.0; 4],
-                c_near: [0.0; 4],
-                c_far: [0.0; 4],
-            };
-            _mm_storeu_ps(r.inv.as_mut_ptr(), to_f32(inv));
-            _mm_storeu_ps(r.c_near.as_mut_ptr(), to_f32(c_near));
-            _mm_storeu_ps(r.c_far.as_mut_ptr(), to_f32(c_far));
-            for a in 0..3 {
-                let n = (negative >> a) & 1;
-                r.near[a] = 2 * a + n;
-                r.far[a] = 2 * a + 1 - n;
-            }
-            Some(r)
-        }
-    }
-
-    /// [`SlabRay::new`] where the build has no AVX.
-    #[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
-    #[inline(always)]
-    fn new(ray: &Ray, reach: [f64; 3]) -> Option<SlabRay> {
-        Self::new_scalar(ray, reach)
-    }
-
-    /// The set-up axis by axis (with AVX, kept for the test that compares the two).
-    #[cfg_attr(all(target_arch = "x86_64", target_feature = "avx"), allow(dead_code))]
-    #[inline(always)]
-    fn new_scalar(ray: &Ray, reach: [f64; 3]) -> Option<SlabRay> {
-        let o = ray.origin.to_array();
-        let inv = ray.inv_dir.to_array();
-        let mut r = SlabRay {
-            near: [0; 3],
-            far: [0; 3],
-            inv: [0.0; 4],
-            c_near: [0.0; 4],
-            c_far: [0.0; 4],
-        };
-        let mut ok = true;
-        for (a, reach) in reach.into_iter().enumerate() {
-            let (o, inv) = (o[a], inv[a]);
-            let span = (reach + o.abs()) * inv.abs();
-            // `&` rather than `&&`: four compares, no branches.
-            ok &= (o.abs() < F32_SAFE)
-                & (inv.abs() < F32_SAFE)
-                & (inv.abs() > 1.0 / F32_SAFE)
-                & (span < F32_SPAN);
-            // Rounded to nearest, inside the margin (see `SLAB_MARGIN`).
-            let margin = SLAB_MARGIN * span + SLAB_MARGIN_ABS;
-            r.c_near[a] = (-o * inv - margin) as f32;
-            r.c_far[a] = (-o * inv + margin) as f32;
-            let negative = inv < 0.0;
-            r.near[a] = 2 * a + negative as usize;
-            r.far[a] = 2 * a + 1 - negative as usize;
-            r.inv[a] = inv as f32;
-        }
-        // The vector form's unused lane (origin 0, inverse 1, reach 0).
-        r.inv[3] = 1.0;
-        r.c_near[3] = -SLAB_MARGIN_ABS as f32;
-        r.c_far[3] = SLAB_MARGIN_ABS as f32;
-        ok.then_some(r)
-    }
-
     /// Hit mask and conservative entry distances of a node's boxes, all eight at once (AVX:
     /// the binaries' default target, x86-64-v3). The same lane operations as the SSE form
     /// below, so the same bits.
     #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
     #[inline(always)]
-    fn hit(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
+    fn hit_top(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
         use std::arch::x86_64::*;
         let mut dist = [0f32; WIDTH];
         let b = &node.bounds;
@@ -402,18 +267,18 @@ impl SlabRay {
         }
     }
 
-    /// [`SlabRay::hit_sse`] where the build has no AVX.
+    /// [`SlabRay::hit_top_sse`] where the build has no AVX.
     #[cfg(all(target_arch = "x86_64", not(target_feature = "avx")))]
     #[inline(always)]
-    fn hit(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
-        self.hit_sse(node, t_max)
+    fn hit_top(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
+        self.hit_top_sse(node, t_max)
     }
 
     /// Hit mask and conservative entry distances of a node's boxes, four at a time (with AVX,
     /// kept for the test that compares the two).
     #[cfg(all(target_arch = "x86_64", any(test, not(target_feature = "avx"))))]
     #[inline(always)]
-    fn hit_sse(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
+    fn hit_top_sse(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
         use std::arch::x86_64::*;
         let mut mask = 0;
         let mut dist = [0f32; WIDTH];
@@ -448,7 +313,7 @@ impl SlabRay {
 
     #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
-    fn hit(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
+    fn hit_top(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
         let b = &node.bounds;
         let t_max = t_limit(t_max);
         let mut mask = 0;
@@ -469,12 +334,6 @@ impl SlabRay {
         }
         (mask, dist)
     }
-}
-
-/// An f32 bound not below `t_max`.
-#[inline(always)]
-fn t_limit(t_max: f64) -> f32 {
-    t_max as f32 * SLAB_UP + SLAB_ABS
 }
 
 #[cfg(test)]
@@ -516,51 +375,13 @@ mod tests {
                     3.0 * scale
                 };
                 for node in &top.nodes {
-                    let (mask, dist) = slab.hit(node, t_max);
-                    let (mask_sse, dist_sse) = slab.hit_sse(node, t_max);
+                    let (mask, dist) = slab.hit_top(node, t_max);
+                    let (mask_sse, dist_sse) = slab.hit_top_sse(node, t_max);
                     assert_eq!(mask, mask_sse);
                     assert_eq!(dist.map(f32::to_bits), dist_sse.map(f32::to_bits));
                 }
             }
         }
-    }
-
-    /// The vector ray set-up gives the scalar one's fields bit for bit, and refuses the same
-    /// rays (huge origins, near-axis directions whose inverse overflows the f32 range).
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
-    #[test]
-    fn the_vector_ray_set_up_is_the_scalar_one() {
-        let mut next = crate::test_rng::uniform(11);
-        let mut refused = 0;
-        for i in 0..20_000 {
-            let scale = 10f64.powf(next() * 70.0 - 35.0);
-            let origin = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5) * scale;
-            let mut dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
-            match i % 7 {
-                0 => dir.x = 0.0,
-                1 => dir.y = -0.0,
-                2 => dir.z = 1e-32 * (next() - 0.5),
-                _ => {}
-            }
-            let ray = Ray::new(origin, dir);
-            let reach = [next(), next(), next()].map(|v| v * 10f64.powf(next() * 60.0 - 30.0));
-            let vector = SlabRay::new(&ray, reach);
-            let scalar = SlabRay::new_scalar(&ray, reach);
-            let bits = |r: &Option<SlabRay>| {
-                r.as_ref().map(|r| {
-                    let f = |v: [f32; 4]| v.map(f32::to_bits);
-                    (r.near, r.far, f(r.inv), f(r.c_near), f(r.c_far))
-                })
-            };
-            assert_eq!(
-                bits(&vector),
-                bits(&scalar),
-                "ray {i}: {ray:?}, reach {reach:?}"
-            );
-            refused += vector.is_none() as usize;
-        }
-        // Both kinds of ray are checked.
-        assert!((2_000..18_000).contains(&refused), "{refused} refused");
     }
 
     /// Every box a ray meets in f64 is handed out, at scales from 1e-4 to 1e5.
