@@ -407,12 +407,12 @@ pub(super) fn reach(bounds: &Aabb) -> [f64; 3] {
 }
 
 impl RayF32 {
-    /// The set-up for a tree reaching `reach` ([`reach`]), or None where the ray is out of the f32
-    /// test's range. Every shadow and mirror ray of a course scene makes one, so the three
-    /// axes are worked in the lanes of two 128-bit f64 vectors, (x, y) and (z, unused), with
-    /// the same operations per lane as the scalar form and so the same bits (2–3% fewer
-    /// instructions a spheres.scene or stacks.scene sample). One 256-bit vector was 1.5%
-    /// slower on one thread and 10% slower on two (docs/performance.md).
+    /// The set-up for a tree reaching `reach` ([`reach`]), or None where the ray is out of the
+    /// f32 test's range. Every mesh entry and every shadow and mirror ray of a course scene
+    /// makes one, so the three axes are worked in the lanes of two 128-bit f64 vectors, (x, y)
+    /// and (z, unused), with the same operations per lane as the scalar form and so the same
+    /// bits (2–3% fewer instructions a spheres.scene or stacks.scene sample). One 256-bit
+    /// vector was 1–3% slower (docs/performance.md).
     #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
     #[inline(always)]
     pub(crate) fn new(ray: &Ray, reach: [f64; 3]) -> Option<RayF32> {
