@@ -380,7 +380,7 @@ fn prefetch(nodes: &[Node], index: u32) {
 ///
 /// The top level's walk (`world::top`) uses the same set-up. The f32 rows hold a fourth,
 /// unused lane, so that the vector set-up stores each in one instruction.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(crate) struct RayF32 {
     /// Row of `Node::bounds` holding the near / far plane on each axis.
     pub(crate) near: [usize; 3],
@@ -459,13 +459,7 @@ impl RayF32 {
                 return None;
             }
             let to_f32 = |v: [__m128d; 2]| _mm_movelh_ps(_mm_cvtpd_ps(v[0]), _mm_cvtpd_ps(v[1]));
-            let mut r = RayF32 {
-                near: [0; 3],
-                far: [0; 3],
-                inv: [0.0; 4],
-                c_near: [0.0; 4],
-                c_far: [0.0; 4],
-            };
+            let mut r = RayF32::default();
             _mm_storeu_ps(r.inv.as_mut_ptr(), to_f32(inv));
             _mm_storeu_ps(r.c_near.as_mut_ptr(), to_f32(c_near));
             _mm_storeu_ps(r.c_far.as_mut_ptr(), to_f32(c_far));
@@ -491,13 +485,7 @@ impl RayF32 {
     pub(crate) fn new_scalar(ray: &Ray, reach: [f64; 3]) -> Option<RayF32> {
         let o = ray.origin.to_array();
         let inv = ray.inv_dir.to_array();
-        let mut r = RayF32 {
-            near: [0; 3],
-            far: [0; 3],
-            inv: [0.0; 4],
-            c_near: [0.0; 4],
-            c_far: [0.0; 4],
-        };
+        let mut r = RayF32::default();
         let mut ok = true;
         for (a, reach) in reach.into_iter().enumerate() {
             let (o, inv) = (o[a], inv[a]);
