@@ -10,6 +10,9 @@ pub use packet::{PacketBounds, PACKET};
 /// boxes in two SSE halves.
 pub const WIDTH: usize = 8;
 
+/// A node's child boxes in SoA f32: row `2 * axis` the minima, `2 * axis + 1` the maxima.
+pub(crate) type Bounds = [[f32; WIDTH]; 6];
+
 /// A `WIDTH`-wide BVH node: the boxes of up to `WIDTH` children in SoA f32 (four children
 /// per SIMD register per plane), so one visit tests every box at once. Boxes are rounded
 /// outward from f64, so they always contain the primitives' own bounds.
@@ -164,7 +167,9 @@ impl Bvh {
                     // SAFETY: the CPU has AVX2.
                     return unsafe { self.traverse_avx2::<NEAREST_FIRST>(&r, t_max, leaf) };
                 }
-                self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| r.hit(node, t_max))
+                self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| {
+                    r.hit(&node.bounds, t_max)
+                })
             }
             None => self.traverse_with::<NEAREST_FIRST>(t_max, leaf, |node, t_max| {
                 hit_f64(node, ray, t_max)
@@ -193,7 +198,9 @@ impl Bvh {
                     // SAFETY: the CPU has AVX2.
                     return unsafe { self.traverse_avx2::<FARTHEST_FIRST>(&r, t_max, leaf) };
                 }
-                self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| r.hit(node, t_max))
+                self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| {
+                    r.hit(&node.bounds, t_max)
+                })
             }
             None => self.traverse_with::<FARTHEST_FIRST>(t_max, leaf, |node, t_max| {
                 hit_f64(node, ray, t_max)
@@ -232,7 +239,7 @@ impl Bvh {
     ) -> bool {
         // SAFETY: this function only runs where AVX2 is available.
         self.traverse_with::<ORDER>(t_max, leaf, |node, t_max| unsafe {
-            r.hit_avx2(node, t_max)
+            r.hit_avx2(&node.bounds, t_max)
         })
     }
 
@@ -515,7 +522,7 @@ impl RayF32 {
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     #[allow(unused_unsafe)]
-    fn hit(&self, node: &Node, t_max: f64) -> (u32, [f32; WIDTH]) {
+    pub(crate) fn hit(&self, bounds: &Bounds, t_max: f64) -> (u32, [f32; WIDTH]) {
         use std::arch::x86_64::*;
         let mut mask = 0;
         let mut dist = [0f32; WIDTH];
@@ -523,7 +530,7 @@ impl RayF32 {
         // read 16 bytes from rows of `WIDTH` (a multiple of four) f32s at offsets `half`,
         // `half + 4`, ….
         unsafe {
-            let b = &node.bounds;
+            let b = bounds;
             let t_far = _mm_set1_ps(t_limit(t_max));
             for half in (0..WIDTH).step_by(4) {
                 let plane = |row: usize, inv: f32, c: f32| {
@@ -558,11 +565,11 @@ impl RayF32 {
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     #[allow(unused_unsafe)]
-    unsafe fn hit_avx2(&self, node: &Node, t_max: f64) -> (u32, [f32; WIDTH]) {
+    pub(crate) unsafe fn hit_avx2(&self, bounds: &Bounds, t_max: f64) -> (u32, [f32; WIDTH]) {
         use std::arch::x86_64::*;
         let mut mask = 0;
         let mut dist = [0f32; WIDTH];
-        let b = &node.bounds;
+        let b = bounds;
         // SAFETY: the caller guarantees AVX2.
         let t_far = unsafe { _mm256_set1_ps(t_limit(t_max)) };
         for half in (0..WIDTH).step_by(8) {
@@ -598,8 +605,8 @@ impl RayF32 {
 
     #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
-    fn hit(&self, node: &Node, t_max: f64) -> (u32, [f32; WIDTH]) {
-        let b = &node.bounds;
+    pub(crate) fn hit(&self, bounds: &Bounds, t_max: f64) -> (u32, [f32; WIDTH]) {
+        let b = bounds;
         let t_max = t_limit(t_max);
         let mut mask = 0;
         let mut dist = [0f32; WIDTH];
@@ -917,9 +924,9 @@ mod tests {
             let r = RayF32::new(&Ray::new(origin, dir), bvh.reach).expect("an f32-safe ray");
             let t_max = if i % 2 == 0 { f64::INFINITY } else { 30.0 };
             for node in &bvh.nodes {
-                let sse = r.hit(node, t_max);
+                let sse = r.hit(&node.bounds, t_max);
                 // SAFETY: AVX2 was detected above.
-                let avx = unsafe { r.hit_avx2(node, t_max) };
+                let avx = unsafe { r.hit_avx2(&node.bounds, t_max) };
                 assert_eq!(sse.0, avx.0);
                 for c in 0..WIDTH {
                     if sse.0 & (1 << c) != 0 {

@@ -4,13 +4,14 @@
 //! scene holds a few dozen objects, and there the per-ray and per-node overheads decided the
 //! cost (a third of a stacks.scene render was traversal bookkeeping: working out which
 //! children are leaves, bounds checks, the branchy f32 ray set-up). This copy of the nodes
-//! keeps each node's leaf mask, sets up a ray without branches and walks the same f32 slab test,
-//! so exactly the boxes the generic test enters are entered (it is conservative: a box the
-//! f64 test would enter is never culled), and leaves are handed to the caller slot by slot.
+//! keeps each node's leaf mask and walks them with the generic traversal's own ray set-up and
+//! box test ([`RayF32`]), so exactly the boxes the generic test enters are entered (it is
+//! conservative: a box the f64 test would enter is never culled), and leaves are handed to the
+//! caller slot by slot.
 
 use std::mem::MaybeUninit;
 
-use crate::accel::{t_limit, Bvh, Node, RayF32};
+use crate::accel::{Bounds, Bvh, Node, RayF32};
 use crate::geometry::Ray;
 
 /// Children per top-level node.
@@ -20,15 +21,12 @@ const WIDTH: usize = 8;
 const MAX_DEPTH: usize = 96;
 const STACK_DEPTH: usize = (WIDTH - 1) * MAX_DEPTH;
 
-/// The slab test's margins are the mesh walk's: see [`RayF32`] for the per-ray set-up and
-/// [`t_limit`] for `t_max`'s rounding.
-
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
 struct TopNode {
     /// `bounds[2 * axis]`: the children's minima on `axis`; `bounds[2 * axis + 1]` maxima.
     /// Unused slots hold an empty box (min +∞, max −∞).
-    bounds: [[f32; WIDTH]; 6],
+    bounds: Bounds,
     /// Per child: the child node's index, or a leaf's first slot.
     index: [u32; WIDTH],
     /// Per child: a leaf's slot count (0 for an interior child or an unused slot).
@@ -72,7 +70,7 @@ impl TopLevel {
         if self.nodes.is_empty() {
             return Some(false);
         }
-        let r = SlabRay::new(ray, self.reach)?;
+        let r = RayF32::new(ray, self.reach)?;
         // Left uninitialised: only slots below `top`, each written first, are read.
         let mut stack = [const { MaybeUninit::<(u32, f32)>::uninit() }; STACK_DEPTH];
         let mut top = 0;
@@ -224,115 +222,19 @@ impl TopNode {
     }
 }
 
-/// The f32 slab test's per-ray constants: the mesh walk's ([`RayF32`]), with the top level's
-/// own node tests below.
-type SlabRay = RayF32;
-
-impl SlabRay {
-    /// Hit mask and conservative entry distances of a node's boxes, all eight at once (AVX:
-    /// the binaries' default target, x86-64-v3). The same lane operations as the SSE form
-    /// below, so the same bits.
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
+/// The top level's node test, on the mesh walk's per-ray constants.
+impl RayF32 {
+    /// Hit mask and conservative entry distances of a node's boxes: the mesh walk's own box
+    /// test ([`RayF32`]), eight lanes at once where the build has AVX2 (the binaries' default
+    /// target, x86-64-v3), else the four-lane SSE or scalar form, so exactly the boxes the
+    /// generic traversal enters are entered.
     #[inline(always)]
     fn hit_top(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
-        use std::arch::x86_64::*;
-        let mut dist = [0f32; WIDTH];
-        let b = &node.bounds;
-        let row = |i: usize| &b[i % 6];
-        // SAFETY: AVX is enabled for the whole build (cfg above); the loads read a row's
-        // eight f32s and the store writes `dist`'s eight.
-        unsafe {
-            let plane = |r: &[f32; WIDTH], inv: f32, c: f32| {
-                let b = _mm256_loadu_ps(r.as_ptr());
-                #[cfg(target_feature = "fma")]
-                return _mm256_fmadd_ps(b, _mm256_set1_ps(inv), _mm256_set1_ps(c));
-                #[cfg(not(target_feature = "fma"))]
-                return _mm256_add_ps(_mm256_mul_ps(b, _mm256_set1_ps(inv)), _mm256_set1_ps(c));
-            };
-            let nx = plane(row(self.near[0]), self.inv[0], self.c_near[0]);
-            let ny = plane(row(self.near[1]), self.inv[1], self.c_near[1]);
-            let nz = plane(row(self.near[2]), self.inv[2], self.c_near[2]);
-            let fx = plane(row(self.far[0]), self.inv[0], self.c_far[0]);
-            let fy = plane(row(self.far[1]), self.inv[1], self.c_far[1]);
-            let fz = plane(row(self.far[2]), self.inv[2], self.c_far[2]);
-            let t_far = _mm256_set1_ps(t_limit(t_max));
-            let near = _mm256_max_ps(
-                _mm256_max_ps(nx, ny),
-                _mm256_max_ps(nz, _mm256_setzero_ps()),
-            );
-            let far = _mm256_min_ps(_mm256_min_ps(fx, fy), _mm256_min_ps(fz, t_far));
-            let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32;
-            _mm256_storeu_ps(dist.as_mut_ptr(), near);
-            (mask, dist)
-        }
-    }
-
-    /// [`SlabRay::hit_top_sse`] where the build has no AVX.
-    #[cfg(all(target_arch = "x86_64", not(target_feature = "avx")))]
-    #[inline(always)]
-    fn hit_top(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
-        self.hit_top_sse(node, t_max)
-    }
-
-    /// Hit mask and conservative entry distances of a node's boxes, four at a time (with AVX,
-    /// kept for the test that compares the two).
-    #[cfg(all(target_arch = "x86_64", any(test, not(target_feature = "avx"))))]
-    #[inline(always)]
-    fn hit_top_sse(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
-        use std::arch::x86_64::*;
-        let mut mask = 0;
-        let mut dist = [0f32; WIDTH];
-        let b = &node.bounds;
-        let row = |i: usize| &b[i % 6];
-        // SAFETY: SSE is part of the x86_64 baseline; the loads read four f32s of a row of
-        // eight at offset 0 or 4, and the store writes four of `dist`'s eight there.
-        unsafe {
-            let t_far = _mm_set1_ps(t_limit(t_max));
-            for half in [0, 4] {
-                let plane = |r: &[f32; WIDTH], inv: f32, c: f32| {
-                    let b = _mm_loadu_ps(r.as_ptr().add(half));
-                    #[cfg(target_feature = "fma")]
-                    return _mm_fmadd_ps(b, _mm_set1_ps(inv), _mm_set1_ps(c));
-                    #[cfg(not(target_feature = "fma"))]
-                    return _mm_add_ps(_mm_mul_ps(b, _mm_set1_ps(inv)), _mm_set1_ps(c));
-                };
-                let nx = plane(row(self.near[0]), self.inv[0], self.c_near[0]);
-                let ny = plane(row(self.near[1]), self.inv[1], self.c_near[1]);
-                let nz = plane(row(self.near[2]), self.inv[2], self.c_near[2]);
-                let fx = plane(row(self.far[0]), self.inv[0], self.c_far[0]);
-                let fy = plane(row(self.far[1]), self.inv[1], self.c_far[1]);
-                let fz = plane(row(self.far[2]), self.inv[2], self.c_far[2]);
-                let near = _mm_max_ps(_mm_max_ps(nx, ny), _mm_max_ps(nz, _mm_setzero_ps()));
-                let far = _mm_min_ps(_mm_min_ps(fx, fy), _mm_min_ps(fz, t_far));
-                mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << half;
-                _mm_storeu_ps(dist.as_mut_ptr().add(half), near);
-            }
-        }
-        (mask, dist)
-    }
-
-    #[cfg(not(target_arch = "x86_64"))]
-    #[inline(always)]
-    fn hit_top(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
-        let b = &node.bounds;
-        let t_max = t_limit(t_max);
-        let mut mask = 0;
-        let mut dist = [0f32; WIDTH];
-        for c in 0..WIDTH {
-            let mut near = 0f32;
-            let mut far = t_max;
-            for a in 0..3 {
-                let tn = b[self.near[a] % 6][c] * self.inv[a] + self.c_near[a];
-                let tf = b[self.far[a] % 6][c] * self.inv[a] + self.c_far[a];
-                near = if tn > near { tn } else { near };
-                far = if tf < far { tf } else { far };
-            }
-            if near <= far {
-                mask |= 1 << c;
-            }
-            dist[c] = near;
-        }
-        (mask, dist)
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+        // SAFETY: AVX2 is enabled for the whole build (cfg above).
+        return unsafe { self.hit_avx2(&node.bounds, t_max) };
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+        return self.hit(&node.bounds, t_max);
     }
 }
 
@@ -342,47 +244,6 @@ mod tests {
 
     use super::*;
     use crate::geometry::Aabb;
-
-    /// The eight-wide AVX test gives the four-wide SSE test's mask and distances, bit for bit.
-    #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
-    #[test]
-    fn the_avx_node_test_is_the_sse_one() {
-        let mut next = crate::test_rng::uniform(5);
-        for scale in [1e-3, 1.0, 1e4] {
-            let prims: Vec<Aabb> = (0..200)
-                .map(|_| {
-                    let c = DVec3::new(next(), next(), next()) * 10.0 * scale;
-                    let e = DVec3::new(next(), next(), next()) * scale;
-                    Aabb {
-                        min: c - e,
-                        max: c + e,
-                    }
-                })
-                .collect();
-            let top = TopLevel::new(&Bvh::build(&prims));
-            for i in 0..500 {
-                let origin = DVec3::new(next(), next(), next()) * 12.0 * scale;
-                // Nearly axis-aligned directions too: their huge inverse components.
-                let mut dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5);
-                if i % 5 == 0 {
-                    dir.y = 1e-20;
-                }
-                let ray = Ray::new(origin, dir.normalize());
-                let slab = SlabRay::new(&ray, top.reach).expect("in range");
-                let t_max = if i % 2 == 0 {
-                    f64::INFINITY
-                } else {
-                    3.0 * scale
-                };
-                for node in &top.nodes {
-                    let (mask, dist) = slab.hit_top(node, t_max);
-                    let (mask_sse, dist_sse) = slab.hit_top_sse(node, t_max);
-                    assert_eq!(mask, mask_sse);
-                    assert_eq!(dist.map(f32::to_bits), dist_sse.map(f32::to_bits));
-                }
-            }
-        }
-    }
 
     /// Every box a ray meets in f64 is handed out, at scales from 1e-4 to 1e5.
     #[test]

@@ -342,7 +342,7 @@ impl Bvh {
             fetch,
             leaf,
             |node, far| packet.hit(node, far),
-            |r, node, t_max| r.hit(node, t_max),
+            |r, node, t_max| r.hit(&node.bounds, t_max),
         )
     }
 
@@ -368,7 +368,7 @@ impl Bvh {
             fetch,
             leaf,
             |node, far| unsafe { packet.hit_avx2(node, far) },
-            |r, node, t_max| unsafe { r.hit_avx2(node, t_max) },
+            |r, node, t_max| unsafe { r.hit_avx2(&node.bounds, t_max) },
         )
     }
 
