@@ -69,6 +69,41 @@ pub struct TriangleRay {
 impl TriangleRay {
     #[inline(always)]
     pub fn new(ray: &Ray) -> Self {
+        // Without branches: which axis is largest, and the sign along it, change from ray to
+        // ray, and the branches (and `DVec3`'s index match) mispredicted for incoherent rays.
+        let d = ray.dir.extend(0.0).to_array();
+        let a = ray.dir.abs();
+        // The first axis of largest magnitude: x where it is at least y and z, else y where it
+        // is at least z, else z.
+        // (As `>=` reads them: a NaN component compares false, so y is not "at least" it.)
+        let x_largest = (a.x >= a.y) & (a.x >= a.z);
+        let y_at_least_z = a.y >= a.z;
+        let kz = (!x_largest) as usize * (1 + (!y_at_least_z) as usize);
+        // The next two axes cyclically; swapped where the direction points down z, which keeps
+        // the winding (the edge functions' signs).
+        const NEXT: [usize; 3] = [1, 2, 0];
+        let (mut kx, mut ky) = (NEXT[kz], NEXT[NEXT[kz]]);
+        let swap = (kx ^ ky) & ((d[kz & 3] < 0.0) as usize).wrapping_neg();
+        kx ^= swap;
+        ky ^= swap;
+        let dz = d[kz & 3];
+        Self {
+            origin: ray.origin,
+            kx,
+            ky,
+            kz,
+            shear: DVec3::new(d[kx & 3] / dz, d[ky & 3] / dz, 1.0 / dz),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The set-up as first written, with branches: the reference the branch-free one must
+    /// equal.
+    fn with_branches(ray: &Ray) -> (usize, usize, usize, DVec3) {
         let a = ray.dir.abs();
         let kz = if a.x >= a.y && a.x >= a.z {
             0
@@ -79,17 +114,41 @@ impl TriangleRay {
         };
         let mut kx = (kz + 1) % 3;
         let mut ky = (kx + 1) % 3;
-        // Keep the winding: swapping x and y when dir.z < 0 preserves the edge-function signs.
         if ray.dir[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky);
         }
         let dz = ray.dir[kz];
-        Self {
-            origin: ray.origin,
-            kx,
-            ky,
-            kz,
-            shear: DVec3::new(ray.dir[kx] / dz, ray.dir[ky] / dz, 1.0 / dz),
+        let shear = DVec3::new(ray.dir[kx] / dz, ray.dir[ky] / dz, 1.0 / dz);
+        (kx, ky, kz, shear)
+    }
+
+    #[test]
+    fn the_branch_free_set_up_is_the_branching_one() {
+        // Every mix of magnitudes (ties included) and signs (zeros of both signs), plus NaN.
+        let values = [0.0, -0.0, 0.5, -0.5, 1.0, -1.0, 2.0, -2.0, f64::NAN];
+        let mut checked = 0;
+        for &x in &values {
+            for &y in &values {
+                for &z in &values {
+                    let ray = Ray {
+                        origin: DVec3::new(1.0, 2.0, 3.0),
+                        dir: DVec3::new(x, y, z),
+                        inv_dir: DVec3::ONE,
+                        time: 0.0,
+                    };
+                    let t = TriangleRay::new(&ray);
+                    let (kx, ky, kz, shear) = with_branches(&ray);
+                    assert_eq!(
+                        (t.kx, t.ky, t.kz),
+                        (kx, ky, kz),
+                        "direction ({x}, {y}, {z})"
+                    );
+                    let bits = |v: DVec3| v.to_array().map(f64::to_bits);
+                    assert_eq!(bits(t.shear), bits(shear), "direction ({x}, {y}, {z})");
+                    checked += 1;
+                }
+            }
         }
+        assert_eq!(checked, 729);
     }
 }
