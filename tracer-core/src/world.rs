@@ -530,8 +530,9 @@ pub struct World {
     pub time_span: (f64, f64),
     objects: Vec<Object>,
     /// Per scene triangle, its unit geometric normal (made once: a hit on a floor or a wall
-    /// would otherwise take a cross product and a square root).
-    triangle_normals: Vec<DVec3>,
+    /// would otherwise take a cross product and a square root), and its unit shading normal
+    /// where its three vertex normals are one (see [`flat_normal`]).
+    triangle_normals: Vec<(DVec3, Option<DVec3>)>,
     model_triangles: Vec<ModelTriangle>,
     top: Bvh,
     /// `top`'s nodes in the layout of the top level's own traversal.
@@ -611,7 +612,10 @@ impl World {
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
         let slot_surface = surfaces(&objects, &triangles, &model_triangles);
         let top_level = TopLevel::new(&top);
-        let triangle_normals = triangles.iter().map(geometric_normal).collect();
+        let triangle_normals = triangles
+            .iter()
+            .map(|t| (geometric_normal(t), flat_normal(t)))
+            .collect();
         let linear_top = objects.len() == 1
             || objects.len() <= LINEAR_TOP
                 && objects
@@ -1473,12 +1477,16 @@ impl World {
                 let s = &self.spheres[i as usize];
                 translated_sphere_patch(position, &s.transform, s.radius, s.material)
             }
-            Object::Triangle(i) => triangle_patch(
-                position,
-                &self.triangles[i as usize],
-                self.triangle_normals[i as usize],
-                hit.bary,
-            ),
+            Object::Triangle(i) => {
+                let (geometric, flat) = self.triangle_normals[i as usize];
+                triangle_patch(
+                    position,
+                    &self.triangles[i as usize],
+                    geometric,
+                    flat,
+                    hit.bary,
+                )
+            }
             Object::Model(i) => {
                 let model = &self.models[i as usize];
                 let mesh = &self.meshes[model.mesh as usize];
@@ -1504,7 +1512,7 @@ impl World {
                             tex_coords: local.tex_coords,
                             materials: local.materials,
                         };
-                        triangle_patch(position, &world, geometric_normal(&world), hit.bary)
+                        triangle_patch(position, &world, geometric_normal(&world), None, hit.bary)
                     }
                     MoverShape::Model { mesh, material } => {
                         let mesh = &self.meshes[*mesh as usize];
@@ -1767,18 +1775,31 @@ fn geometric_normal(t: &WorldTriangle) -> DVec3 {
     (p1 - p0).cross(p2 - p0).normalize_or_zero()
 }
 
+/// A scene triangle's unit shading normal where its three vertex normals are one vector (a
+/// flat floor or wall): the interpolated normal is then that vector times b0 + b1 + b2, and
+/// normalising it gives the vector normalised, to its last bit (exactly, for an axis-aligned
+/// one). Made once, so that such a hit's shading normal waits on no square root or division.
+fn flat_normal(t: &WorldTriangle) -> Option<DVec3> {
+    let [n0, n1, n2] = t.normals;
+    (n0 == n1 && n1 == n2).then(|| n0.try_normalize()).flatten()
+}
+
 #[inline(always)]
 fn triangle_patch(
     position: DVec3,
     t: &WorldTriangle,
     geometric: DVec3,
+    flat: Option<DVec3>,
     bary: [f64; 3],
 ) -> Patch<'static> {
     let [b0, b1, b2] = bary;
-    let interpolated = b0 * t.normals[0] + b1 * t.normals[1] + b2 * t.normals[2];
+    let normal = flat.unwrap_or_else(|| {
+        let interpolated = b0 * t.normals[0] + b1 * t.normals[1] + b2 * t.normals[2];
+        interpolated.try_normalize().unwrap_or(geometric)
+    });
     Patch {
         position,
-        normal: interpolated.try_normalize().unwrap_or(geometric),
+        normal,
         geometric_normal: geometric,
         uv: Uv::At(corner_lerp(t.tex_coords, b1, b2)),
         material: MaterialAt::Blend {
@@ -1845,6 +1866,42 @@ pub fn sphere_uv(p: DVec3) -> DVec2 {
 mod tests {
     use super::*;
     use glam::DQuat;
+
+    #[test]
+    fn a_flat_triangles_normal_is_the_interpolated_one_to_the_last_bits() {
+        let triangle = |normals: [DVec3; 3]| WorldTriangle {
+            positions: [DVec3::ZERO, DVec3::X, DVec3::Y],
+            normals,
+            tex_coords: [glam::DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let mut next = crate::test_rng::uniform(17);
+        let tilted = DVec3::new(0.3, -1.7, 2.2);
+        for n in [DVec3::Y, -DVec3::X, DVec3::Z * 3.0, tilted] {
+            let t = triangle([n; 3]);
+            let flat = flat_normal(&t).expect("three equal normals are flat");
+            let geometric = geometric_normal(&t);
+            for _ in 0..500 {
+                let (b1, b2) = (next() * 0.5, next() * 0.5);
+                let bary = [1.0 - b1 - b2, b1, b2];
+                let interpolated = (bary[0] * n + bary[1] * n + bary[2] * n).normalize();
+                let patch = triangle_patch(DVec3::ZERO, &t, geometric, Some(flat), bary);
+                assert_eq!(patch.normal, flat);
+                if n == tilted {
+                    assert!(
+                        (flat - interpolated).length() < 1e-15,
+                        "{flat} {interpolated}"
+                    );
+                } else {
+                    // An axis-aligned normal: the same bits up to the last one.
+                    assert!((flat - interpolated).abs().max_element() <= f64::EPSILON);
+                }
+            }
+        }
+        // Normals that differ, or none, take the interpolation.
+        assert_eq!(flat_normal(&triangle([DVec3::Y, DVec3::Y, DVec3::X])), None);
+        assert_eq!(flat_normal(&triangle([DVec3::ZERO; 3])), None);
+    }
 
     #[test]
     fn a_translated_spheres_normal_is_the_unit_offset_to_the_last_bits() {
