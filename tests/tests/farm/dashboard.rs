@@ -142,8 +142,24 @@ async fn wait_js(browser: &Browser, expr: &str, ok: impl Fn(&Value) -> bool) -> 
     }
 }
 
+/// Clicks the element `css` names. The dashboard redraws its job table as jobs move on, so an
+/// element found a moment ago may be replaced or not shown yet when the click arrives; the
+/// WebDriver server then refuses it ("element not interactable", "stale element reference")
+/// without clicking, and the element is found again and clicked until 20 s have passed.
 async fn click(browser: &Browser, css: &str) {
-    find(browser, css).await.click().await.unwrap();
+    let start = Instant::now();
+    loop {
+        let error = match find(browser, css).await.click().await {
+            Ok(()) => return,
+            Err(e) => e.to_string(),
+        };
+        let not_yet = error.contains("not interactable") || error.contains("stale element");
+        assert!(
+            not_yet && start.elapsed() < Duration::from_secs(20),
+            "clicking {css}: {error}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 async fn set_field(browser: &Browser, id: &str, value: &str) {
