@@ -330,8 +330,12 @@ async fn the_dashboard_renders_a_submitted_scene_in_chromium() {
     );
 
     // A second job, queued behind the first (one worker), submitted from elsewhere: the page
-    // learns of it from the event stream.
-    let b = submit(&client, &cube, small_spec(1, 16)).await.id;
+    // learns of it from the event stream. Large enough (1280×960 at 64 spp, some seconds of
+    // work) that it is still queued or running when the page cancels it, however fast the
+    // first job finished: a small one could be done by then, its cancel button hidden.
+    let mut spec_b = small_spec(64, 64);
+    (spec_b.render.width, spec_b.render.height) = (1280, 960);
+    let b = submit(&client, &cube, spec_b).await.id;
     let row_b = format!("document.getElementById('job-{b}')");
     wait_js(&browser, &format!("{row_b} !== null"), |v| v == true).await;
 
