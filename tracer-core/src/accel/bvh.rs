@@ -807,6 +807,54 @@ mod tests {
         }
     }
 
+    /// A closest-hit walk whose leaf test shrinks `t_max` at each hit (culling what lies
+    /// beyond) finds the box brute force finds first, the lowest index among equally near
+    /// ones, from inside and outside the scatter.
+    #[test]
+    fn the_closest_hit_walk_finds_the_nearest_box() {
+        // Boxes large enough to overlap, so that a ray meets several in most subtrees.
+        let mut next = crate::test_rng::uniform(77);
+        let prims: Vec<Aabb> = (0..3000)
+            .map(|_| {
+                let c = DVec3::new(next(), next(), next()) * 100.0;
+                let e = DVec3::new(next(), next(), next()) * 6.0;
+                Aabb {
+                    min: c - e,
+                    max: c + e,
+                }
+            })
+            .collect();
+        let bvh = Bvh::build(&prims);
+        for _ in 0..2000 {
+            let origin = DVec3::new(next(), next(), next()) * 160.0 - 30.0;
+            // Aimed at a box's centre, so every ray hits something.
+            let target = prims[(next() * prims.len() as f64) as usize].centroid();
+            let dir = (target - origin).normalize();
+            let ray = Ray::new(origin, dir);
+            let nearest = |best: Option<(f64, usize)>, (t, p): (f64, usize)| match best {
+                Some(b) if (b.0, b.1) <= (t, p) => Some(b),
+                _ => Some((t, p)),
+            };
+            let expected = (0..prims.len())
+                .filter_map(|p| Some((prims[p].hit(&ray, f64::INFINITY)?, p)))
+                .fold(None, nearest);
+            let mut found = None;
+            let mut t_max = f64::INFINITY;
+            bvh.traverse(&ray, &mut t_max, |range, t_max| {
+                for slot in range {
+                    let p = bvh.order[slot] as usize;
+                    if let Some(t) = prims[p].hit(&ray, *t_max) {
+                        found = nearest(found, (t, p));
+                        *t_max = t;
+                    }
+                }
+                false
+            });
+            assert!(expected.is_some());
+            assert_eq!(found, expected, "ray from {origin} along {dir}");
+        }
+    }
+
     /// The vector ray set-up gives the scalar one's fields bit for bit, and refuses the same
     /// rays (huge origins, near-axis directions whose inverse overflows the f32 range).
     #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
