@@ -149,6 +149,17 @@ impl Bvh {
     /// padded with [`PADDING`] slots, so that an owner can keep its primitives in blocks of
     /// `align` with no leaf straddling two blocks it does not need.
     pub fn build_aligned(bounds: &[Aabb], align: usize) -> Bvh {
+        Bvh::build_with(bounds, align, INTERSECT_COST)
+    }
+
+    /// Like [`Bvh::build`], for primitives whose test costs `intersect_cost` node visits
+    /// each (on average) rather than one: the SAH then gives costly primitives leaves of
+    /// their own sooner, so that a ray tests only those whose boxes it meets.
+    pub fn build_costed(bounds: &[Aabb], intersect_cost: f64) -> Bvh {
+        Bvh::build_with(bounds, 1, intersect_cost)
+    }
+
+    fn build_with(bounds: &[Aabb], align: usize, intersect_cost: f64) -> Bvh {
         if bounds.is_empty() {
             return Bvh::default();
         }
@@ -179,6 +190,7 @@ impl Bvh {
         let builder = Builder {
             align,
             align_shift: align.is_power_of_two().then(|| align.trailing_zeros()),
+            intersect_cost,
         };
         let root = Part {
             first: 0,
@@ -243,6 +255,8 @@ struct Builder {
     align: usize,
     /// log2(`align`) where `align` is a power of two.
     align_shift: Option<u32>,
+    /// The SAH's cost of testing a block of primitives, in node visits.
+    intersect_cost: f64,
 }
 
 /// Primitives whose centroid falls in a bin below `bin` on `axis` go to the left child.
@@ -779,9 +793,9 @@ impl Builder {
             right.grow(b);
         }
         let (left, right) = (left.aabb(), right.aabb());
-        let split_cost =
-            TRAVERSAL_COST + INTERSECT_COST * cost / bounds.surface_area().max(f64::MIN_POSITIVE);
-        let leaf_cost = INTERSECT_COST * self.blocks(prims.len());
+        let split_cost = TRAVERSAL_COST
+            + self.intersect_cost * cost / bounds.surface_area().max(f64::MIN_POSITIVE);
+        let leaf_cost = self.intersect_cost * self.blocks(prims.len());
         let leaf_cheaper = prims.len() <= self.max_leaf() && leaf_cost <= split_cost;
         let split = Split {
             axis,
@@ -962,6 +976,37 @@ mod tests {
                 assert!(several > 0);
             }
         }
+    }
+
+    /// Overlapping boxes share leaves where testing them costs what a node visit does, and
+    /// get leaves of their own where each costs four (mesh instances at the top level).
+    #[test]
+    fn costly_primitives_get_leaves_of_their_own() {
+        let mut next = crate::test_rng::uniform(4);
+        let prims: Vec<Aabb> = (0..2000)
+            .map(|_| {
+                let c = DVec3::new(next(), next(), next()) * 40.0;
+                let e = DVec3::new(next(), next(), next()) * 3.0 + 1.0;
+                Aabb {
+                    min: c - e,
+                    max: c + e,
+                }
+            })
+            .collect();
+        let largest_leaf = |bvh: &Bvh| {
+            let leaves = bvh.nodes.iter().flat_map(|node| {
+                (0..WIDTH)
+                    .filter(|&c| node.leaves & (1 << c) != 0)
+                    .map(|c| node.count[c])
+            });
+            leaves.max().unwrap()
+        };
+        assert!(largest_leaf(&Bvh::build(&prims)) > 1);
+        let costed = Bvh::build_costed(&prims, 4.0);
+        assert_eq!(largest_leaf(&costed), 1);
+        let mut order = costed.order.clone();
+        order.sort();
+        assert!(order.iter().copied().eq(0..2000));
     }
 
     #[test]
