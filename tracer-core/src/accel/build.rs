@@ -982,17 +982,7 @@ mod tests {
     /// get leaves of their own where each costs four (mesh instances at the top level).
     #[test]
     fn costly_primitives_get_leaves_of_their_own() {
-        let mut next = crate::test_rng::uniform(4);
-        let prims: Vec<Aabb> = (0..2000)
-            .map(|_| {
-                let c = DVec3::new(next(), next(), next()) * 40.0;
-                let e = DVec3::new(next(), next(), next()) * 3.0 + 1.0;
-                Aabb {
-                    min: c - e,
-                    max: c + e,
-                }
-            })
-            .collect();
+        let prims = crate::test_rng::boxes(4, 2000, 40.0, 1.0, 3.0);
         let largest_leaf = |bvh: &Bvh| {
             let leaves = bvh.nodes.iter().flat_map(|node| {
                 (0..WIDTH)

@@ -698,17 +698,7 @@ mod tests {
 
     fn boxes(n: usize) -> Vec<Aabb> {
         // A deterministic scatter of small boxes.
-        let mut next = crate::test_rng::uniform(12345);
-        (0..n)
-            .map(|_| {
-                let c = DVec3::new(next(), next(), next()) * 100.0;
-                let e = DVec3::new(next(), next(), next());
-                Aabb {
-                    min: c - e,
-                    max: c + e,
-                }
-            })
-            .collect()
+        crate::test_rng::boxes(12345, n, 100.0, 0.0, 1.0)
     }
 
     fn leaves(bvh: &Bvh) -> Vec<([f32; 6], u32, u32)> {
@@ -813,17 +803,8 @@ mod tests {
     #[test]
     fn the_closest_hit_walk_finds_the_nearest_box() {
         // Boxes large enough to overlap, so that a ray meets several in most subtrees.
-        let mut next = crate::test_rng::uniform(77);
-        let prims: Vec<Aabb> = (0..3000)
-            .map(|_| {
-                let c = DVec3::new(next(), next(), next()) * 100.0;
-                let e = DVec3::new(next(), next(), next()) * 6.0;
-                Aabb {
-                    min: c - e,
-                    max: c + e,
-                }
-            })
-            .collect();
+        let prims = crate::test_rng::boxes(77, 3000, 100.0, 0.0, 6.0);
+        let mut next = crate::test_rng::uniform(78);
         let bvh = Bvh::build(&prims);
         for _ in 0..2000 {
             let origin = DVec3::new(next(), next(), next()) * 160.0 - 30.0;
