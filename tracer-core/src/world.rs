@@ -549,6 +549,9 @@ pub struct World {
     /// Whether rays test every object in turn rather than walk `top`: a single object, or a
     /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
+    /// Whether the top level holds mesh instances or movers, whose tests cost many node
+    /// visits: closest-hit walks then take leaves nearest first ([`TopLevel::walk_nearest`]).
+    costly_top: bool,
     /// Per model, its instance's world box ([`instance_bounds`]; empty for a flattened
     /// model), against which a packet's rays are tested one by one before they enter it.
     model_bounds: Vec<Aabb>,
@@ -660,6 +663,7 @@ impl World {
             top_level,
             slot_surface,
             linear_top,
+            costly_top: costly > 0,
             model_bounds,
         }
     }
@@ -705,7 +709,12 @@ impl World {
         if self.linear_top {
             return leaf(0..self.objects.len(), t_max);
         }
-        if let Some(found) = self.top_level.walk::<ANY>(ray, t_max, &mut leaf) {
+        let walked = if !ANY && self.costly_top {
+            self.top_level.walk_nearest(ray, t_max, &mut leaf)
+        } else {
+            self.top_level.walk::<ANY>(ray, t_max, &mut leaf)
+        };
+        if let Some(found) = walked {
             return found;
         }
         if ANY {
