@@ -791,6 +791,28 @@ impl World {
                     .map(|s| s as u32),
             )
         });
+        if self.costly_top && slots.len() > 1 {
+            self.nearest_instances_first(origin, slots);
+        }
+    }
+
+    /// Orders `slots` so that mesh instances come nearest first by their boxes' distance
+    /// from `origin` (a frustum's apex), after every other object: the bundle's rays then
+    /// meet a near instance before a far one, whose walk a near hit culls (at its root for a
+    /// single ray, before it is entered for a packet's, see `object_packet`). Any order finds
+    /// the same hits.
+    fn nearest_instances_first(&self, origin: DVec3, slots: &mut [u32]) {
+        let distance = |slot: u32| match self.objects[slot as usize] {
+            Object::Model(i) => {
+                let b = &self.model_bounds[i as usize];
+                (b.min - origin)
+                    .max(origin - b.max)
+                    .max(DVec3::ZERO)
+                    .length_squared()
+            }
+            _ => -1.0,
+        };
+        slots.sort_unstable_by(|&a, &b| distance(a).total_cmp(&distance(b)).then(a.cmp(&b)));
     }
 
     /// The axis-aligned plane (axis, coordinate) of the scene triangle `hit` lies on, where
@@ -2869,6 +2891,22 @@ mod tests {
                 let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
                 world.frustum_slots(camera.position, &planes, &mut slots);
                 kept += slots.len();
+                if world.costly_top {
+                    // Instances nearest first, after every other object.
+                    let key = |&slot: &u32| match world.objects[slot as usize] {
+                        Object::Model(i) => {
+                            let b = &world.model_bounds[i as usize];
+                            let o = camera.position;
+                            (b.min - o).max(o - b.max).max(DVec3::ZERO).length_squared()
+                        }
+                        _ => -1.0,
+                    };
+                    let keys: Vec<f64> = slots.iter().map(key).collect();
+                    assert!(
+                        keys.windows(2).all(|k| k[0] <= k[1]),
+                        "pixel ({x}, {y}): {keys:?}"
+                    );
+                }
                 world
                     .top_level
                     .frustum(camera.position, &planes, &mut |r| boxes_met += r.len());
