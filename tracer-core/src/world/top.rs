@@ -131,20 +131,27 @@ impl TopLevel {
                 }
             }
             // Skip subtrees that a hit found since they were pushed has put out of reach.
-            loop {
-                if top == 0 {
-                    return Some(false);
-                }
-                top -= 1;
-                // SAFETY: slot `top` was written by the push that raised `top` above it.
-                let (n, entry) = unsafe { stack[top].assume_init() };
-                if entry as f64 <= *t_max {
-                    index = n as usize;
-                    break;
-                }
+            match pop_within(&stack, &mut top, *t_max) {
+                Some(n) => index = n as usize,
+                None => return Some(false),
             }
         }
     }
+}
+
+/// Pops the stack's entries (node or leaf key, entry distance) below `*top` until one lies
+/// within `t_max`, and returns its key; None when the stack runs out.
+#[inline(always)]
+fn pop_within(stack: &[MaybeUninit<(u32, f32)>], top: &mut usize, t_max: f64) -> Option<u32> {
+    while *top > 0 {
+        *top -= 1;
+        // SAFETY: the walks write every slot below `top` before raising `top` above it.
+        let (key, entry) = unsafe { stack[*top].assume_init() };
+        if entry as f64 <= t_max {
+            return Some(key);
+        }
+    }
+    None
 }
 
 impl TopLevel {
@@ -203,17 +210,9 @@ impl TopLevel {
                 }
             }
             // The nearest entry still within reach.
-            loop {
-                if top == 0 {
-                    return Some(false);
-                }
-                top -= 1;
-                // SAFETY: slot `top` was written by the push that raised `top` above it.
-                let (key, near) = unsafe { stack[top].assume_init() };
-                if near as f64 <= *t_max {
-                    entry = key;
-                    break;
-                }
+            match pop_within(&stack, &mut top, *t_max) {
+                Some(key) => entry = key,
+                None => return Some(false),
             }
         }
     }
