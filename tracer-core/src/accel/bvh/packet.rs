@@ -415,11 +415,32 @@ impl Bvh {
             all,
             |node, far| packet.hit(node, far),
             |_, _, _, _| None,
-            |_, node, leaves, _, _, t_max, live| {
+            |_, node, leaves, _, _, dist, t_max, live| {
+                // Closest-hit walks take a node's leaves nearest first by the packet's entry
+                // bound: over instances, a near one's hits then keep its rays out of the
+                // farther ones (see `World::object_packet`).
+                let mut order = [0u8; WIDTH];
+                let mut n = 0;
                 let mut m = leaves;
-                while m != 0 && *live != 0 {
-                    let c = m.trailing_zeros() as usize;
+                while m != 0 {
+                    let c = m.trailing_zeros() as u8;
                     m &= m - 1;
+                    let mut i = n;
+                    while ORDER == NEAREST_FIRST
+                        && i > 0
+                        && dist[order[i - 1] as usize] > dist[c as usize]
+                    {
+                        order[i] = order[i - 1];
+                        i -= 1;
+                    }
+                    order[i] = c;
+                    n += 1;
+                }
+                for &c in &order[..n] {
+                    if *live == 0 {
+                        break;
+                    }
+                    let c = c as usize;
                     let first = node.index[c] as usize;
                     leaf(first..first + node.count[c] as usize, t_max, live);
                 }
@@ -468,7 +489,7 @@ impl Bvh {
             |singles, i, node, t_max| {
                 (!self.spans.is_empty()).then(|| ray_hit(singles.get(rays, i), node, t_max))
             },
-            |singles, node, leaves, inner, active, t_max, live| {
+            |singles, node, leaves, inner, active, _, t_max, live| {
                 let single = singles.all(rays);
                 let mut split = [0u64; WIDTH];
                 let mut reach = 0;
@@ -535,9 +556,9 @@ impl Bvh {
     /// each node carrying the mask of the packet's rays that may enter it. A node reached by
     /// one ray alone is tested with `ray_hit(state, ray, node, t_max)`, that ray's own test,
     /// where the owner gives one (else with the packet's, `packet_hit`).
-    /// `per_ray(state, node, leaves, inner, rays, t_max, live)` is called where the packet
-    /// enters leaf children (`leaves`) or two or more interior ones (`inner`) and `rays` holds
-    /// more than one ray; it handles the leaves, may clear rays that are done from `live` (any-hit
+    /// `per_ray(state, node, leaves, inner, rays, dist, t_max, live)` is called where the
+    /// packet enters leaf children (`leaves`) or two or more interior ones (`inner`) and `rays`
+    /// holds more than one ray (`dist`: the node test's entry bounds); it handles the leaves, may clear rays that are done from `live` (any-hit
     /// queries: their `t_max` is set to −∞ and they are dropped from every pending subtree),
     /// and may return, per child, the rays that enter it. The packet's reach is the largest
     /// `t_max` after it. Returns the rays still live; the walk stops when none are.
@@ -556,6 +577,7 @@ impl Bvh {
             u32,
             u32,
             u64,
+            &[f32; WIDTH],
             &mut [f64],
             &mut u64,
         ) -> Option<[u64; WIDTH]>,
@@ -583,7 +605,7 @@ impl Bvh {
             let parts = leaves != 0 || (inner & inner.wrapping_sub(1) != 0 && many);
             let split = if parts {
                 let before = live;
-                let split = per_ray(state, node, leaves, inner, active, t_max, &mut live);
+                let split = per_ray(state, node, leaves, inner, active, &dist, t_max, &mut live);
                 if live != before {
                     if live == 0 {
                         return 0;
@@ -926,6 +948,49 @@ mod tests {
         assert!(PacketBounds::new(&[behind])
             .unwrap()
             .may_hit(&bvh.bounds(), f64::INFINITY));
+    }
+
+    #[test]
+    fn a_closest_hit_packet_is_handed_a_nodes_leaves_nearest_first() {
+        // Eight boxes in a row along x under one node, and packets of rays along the row one
+        // way and the other: whichever way the builder ordered the slots, the leaves must come
+        // nearest first for the packet (any-hit walks keep their own order).
+        let prims: Vec<Aabb> = (0..8)
+            .map(|i| {
+                let c = DVec3::new(i as f64 * 3.0, 0.0, 0.0);
+                Aabb {
+                    min: c - DVec3::splat(1.0),
+                    max: c + DVec3::splat(1.0),
+                }
+            })
+            .collect();
+        let bvh = Bvh::build(&prims);
+        for (start, dir) in [(-10.0, 1.0), (40.0, -1.0)] {
+            let rays: Vec<Ray> = (0..16)
+                .map(|i| {
+                    let o = DVec3::new(start, (i % 4) as f64 * 0.1, (i / 4) as f64 * 0.1);
+                    Ray::new(o, DVec3::new(dir, 0.01, 0.02).normalize())
+                })
+                .collect();
+            let packet = PacketBounds::new(&rays).unwrap();
+            let mut t_max = vec![f64::INFINITY; rays.len()];
+            // Per leaf handed, its boxes and how far along the rays its nearest one lies.
+            let mut handed = Vec::new();
+            bvh.traverse_packet_leaves(&packet, &mut t_max, |slots, _| {
+                let leaf: Vec<usize> = slots.map(|slot| bvh.order[slot] as usize).collect();
+                let near = leaf
+                    .iter()
+                    .map(|&p| dir * prims[p].min.x)
+                    .fold(f64::MAX, f64::min);
+                handed.push((near, leaf));
+            });
+            assert_eq!(handed.iter().map(|(_, l)| l.len()).sum::<usize>(), 8);
+            assert!(handed.len() > 1, "one leaf: nothing to order");
+            assert!(
+                handed.windows(2).all(|w| w[0].0 < w[1].0),
+                "{dir}: {handed:?}"
+            );
+        }
     }
 
     #[test]
