@@ -550,7 +550,8 @@ pub struct World {
     /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
     /// Whether the top level holds mesh instances or movers, whose tests cost many node
-    /// visits: closest-hit walks then take leaves nearest first ([`TopLevel::walk_nearest`]).
+    /// visits: closest-hit walks then take leaves nearest first ([`TopLevel::walk_nearest`]),
+    /// and a frustum's slots list instances nearest first (`nearest_instances_first`).
     costly_top: bool,
     /// Per model, its instance's world box ([`instance_bounds`]; empty for a flattened
     /// model), against which a packet's rays are tested one by one before they enter it.
@@ -803,13 +804,7 @@ impl World {
     /// the same hits.
     fn nearest_instances_first(&self, origin: DVec3, slots: &mut [u32]) {
         let distance = |slot: u32| match self.objects[slot as usize] {
-            Object::Model(i) => {
-                let b = &self.model_bounds[i as usize];
-                (b.min - origin)
-                    .max(origin - b.max)
-                    .max(DVec3::ZERO)
-                    .length_squared()
-            }
+            Object::Model(i) => self.model_bounds[i as usize].distance_squared(origin),
             _ => -1.0,
         };
         slots.sort_unstable_by(|&a, &b| distance(a).total_cmp(&distance(b)).then(a.cmp(&b)));
@@ -1705,29 +1700,22 @@ fn triangle_behind_a_plane(corners: &[DVec3; 3], apex: DVec3, planes: &[DVec3; 4
 }
 
 /// Whether `ray` may meet the box `b` for t in [t_min, t_max]: false only where it surely
-/// does not, so that an object inside `b` can be left untested. The slab distances are worked
-/// in f64 against the box padded by 2^-40 of the coordinates' reach (far beyond their
-/// rounding, about 2^-52 of it). A ray with an infinite inverse direction (parallel to an
-/// axis) is kept; an axis whose distances come out NaN (a box with infinite corners) limits
-/// nothing, as `f64::max` and `min` pass over a NaN operand.
+/// does not, so that an object inside `b` can be left untested. The f64 slab test runs
+/// against the box padded by 2^-40 of the coordinates' reach (the ray's origin included), far
+/// beyond the test's rounding (about 2^-52 of it). A ray with an infinite inverse direction
+/// (parallel to an axis) is kept.
 #[inline(always)]
 fn may_enter(b: &Aabb, ray: &Ray, t_min: f64, t_max: f64) -> bool {
     if !ray.inv_dir.is_finite() {
         return true;
     }
-    let reach = b
-        .min
-        .abs()
-        .max(b.max.abs())
-        .max(ray.origin.abs())
-        .max_element();
+    let reach = (b.min.abs().max(b.max.abs()).max(ray.origin.abs())).max_element();
     let pad = DVec3::splat(reach * (1.0 / (1u64 << 40) as f64));
-    let lo = (b.min - pad - ray.origin) * ray.inv_dir;
-    let hi = (b.max + pad - ray.origin) * ray.inv_dir;
-    let (near, far) = (lo.min(hi), lo.max(hi));
-    let enter = near.x.max(near.y).max(near.z).max(t_min);
-    let leave = far.x.min(far.y).min(far.z).min(t_max);
-    enter <= leave
+    let padded = Aabb {
+        min: b.min - pad,
+        max: b.max + pad,
+    };
+    padded.hit_within(ray, t_min, t_max).is_some()
 }
 
 /// The bound to test an object or triangle against when the nearest hit so far (if
@@ -2895,9 +2883,7 @@ mod tests {
                     // Instances nearest first, after every other object.
                     let key = |&slot: &u32| match world.objects[slot as usize] {
                         Object::Model(i) => {
-                            let b = &world.model_bounds[i as usize];
-                            let o = camera.position;
-                            (b.min - o).max(o - b.max).max(DVec3::ZERO).length_squared()
+                            world.model_bounds[i as usize].distance_squared(camera.position)
                         }
                         _ => -1.0,
                     };
@@ -3137,10 +3123,7 @@ mod tests {
                 );
                 assert!(may_enter(&b, &ray, t, t), "{ray:?} at t = {t} alone");
                 // Its distance to the box bounds the distance at which it can enter.
-                let gap = (b.min - origin)
-                    .max(origin - b.max)
-                    .max(DVec3::ZERO)
-                    .length();
+                let gap = b.distance_squared(origin).sqrt();
                 if gap > 0.0 {
                     short += !may_enter(&b, &ray, 0.0, 0.5 * gap) as usize;
                     let leaving = Ray::new(origin, -dir);

@@ -80,10 +80,26 @@ impl Aabb {
     /// Slab test: the entry distance if the ray meets the box within [0, t_max].
     #[inline(always)]
     pub fn hit(&self, ray: &Ray, t_max: f64) -> Option<f64> {
+        self.hit_within(ray, 0.0, t_max)
+    }
+
+    /// Slab test: the entry distance if the ray meets the box within [t_min, t_max]. An axis
+    /// whose distances come out NaN (0·∞: a ray along the box's face) limits nothing, as
+    /// `f64::max` and `min` pass over a NaN operand.
+    #[inline(always)]
+    pub fn hit_within(&self, ray: &Ray, t_min: f64, t_max: f64) -> Option<f64> {
         let t0 = (self.min - ray.origin) * ray.inv_dir;
         let t1 = (self.max - ray.origin) * ray.inv_dir;
-        let near = t0.min(t1).max_element().max(0.0);
+        let near = t0.min(t1).max_element().max(t_min);
         let far = t0.max(t1).min_element().min(t_max);
         (near <= far).then_some(near)
+    }
+
+    /// The squared distance from `p` to the box (0 inside it).
+    pub fn distance_squared(&self, p: DVec3) -> f64 {
+        (self.min - p)
+            .max(p - self.max)
+            .max(DVec3::ZERO)
+            .length_squared()
     }
 }
