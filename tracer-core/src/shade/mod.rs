@@ -324,8 +324,13 @@ impl<'a> Tracer<'a> {
             }
             let mut color = s.texture * direct;
             let tint = s.texture * s.specular;
+            // A ray spawned at the last level would see black (`Tracer::trace`), so it is not
+            // made; its glossy draw still is, so that the sample's later draws stay in place.
             if tint != DVec3::ZERO {
                 let dir = glossy(reflect(d, n), n, s.glossiness, &mut self.gloss_rng);
+                if level + 1 >= self.max_depth {
+                    return color;
+                }
                 let reflected =
                     spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
                 let leaving = leaving_toward(dir);
@@ -373,6 +378,9 @@ impl<'a> Tracer<'a> {
         let reflectance = crossing.reflectance;
         let tint = s.texture * s.specular;
         let mut color = DVec3::ZERO;
+        // At the last level both rays would see black: only the glossy draw is made (see the
+        // opaque case above).
+        let last = level + 1 >= self.max_depth;
         if reflectance > 0.0 && tint != DVec3::ZERO {
             let dir = glossy(
                 crossing.reflected(d),
@@ -380,6 +388,9 @@ impl<'a> Tracer<'a> {
                 s.glossiness,
                 &mut self.gloss_rng,
             );
+            if last {
+                return color;
+            }
             let reflected = spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
             color += reflectance
                 * tint
@@ -394,7 +405,7 @@ impl<'a> Tracer<'a> {
                     leaving_toward(dir),
                 );
         }
-        if reflectance < 1.0 {
+        if reflectance < 1.0 && !last {
             if let Some(dir) = crossing.refracted(d) {
                 let refracted =
                     spawn_ray(s.position, s.geometric_normal, dir, error_scale, ray.time);
@@ -495,6 +506,53 @@ mod tests {
             }
         }
         assert!(lit_hits > 100, "{lit_hits} eye rays hit lit objects");
+    }
+
+    #[test]
+    fn the_last_level_traces_no_spawned_ray_but_makes_its_glossy_draw() {
+        // Two large, nearly flat glossy mirrors facing each other across the camera: the eye
+        // ray meets the one ahead, its reflection the one behind, and so on, with a glossy
+        // draw (three numbers) at every hit. At the last level the spawned ray is not made, but its draw is.
+        let xml = r#"<scene>
+    <camera><fov v="0.5"/><near_clip v=".01"/><far_clip v="100"/>
+        <position x="0" y="0" z="0"/><orientation a="0" x="1" y="0" z="0"/></camera>
+    <background_color r="0.2" g="0.3" b="0.5"/>
+    <refractive_index v="1"/>
+    <ambient_light r="0" g="0" b="0"/>
+    <material name="gloss"><ambient r="0" g="0" b="0"/><diffuse r="0" g="0" b="0"/>
+        <specular r="0.9" g="0.9" b="0.9"/><glossiness v="0.01"/>
+        <refractive_index v="0"/></material>
+    <sphere material="gloss"><position x="0" y="0" z="-60"/><radius v="50"/></sphere>
+    <sphere material="gloss"><position x="0" y="0" z="60"/><radius v="50"/></sphere>
+</scene>"#;
+        let scene = load(xml);
+        let stage = scene.stage(TextureFilter::Nearest, None);
+        let ray = Ray::new(DVec3::ZERO, DVec3::new(0.0, 0.0, -1.0));
+        for depth in 1..=5u32 {
+            let mut tracer = Tracer::new(stage, depth);
+            let gloss = Rng::from_state(11);
+            let mut rng = Rng::from_state(5);
+            let (color, counts) = tracer.sample(
+                &ray,
+                0.0,
+                f64::INFINITY,
+                &mut rng,
+                Some(gloss.clone()),
+                Eye::Walk,
+            );
+            // Every level hits a mirror: `depth` radiance rays, none escaping to the sky.
+            assert_eq!(counts.radiance, depth, "depth {depth}");
+            assert_eq!(color, DVec3::ZERO, "depth {depth}");
+            let mut expected = gloss;
+            for _ in 0..3 * depth {
+                expected.next_f64();
+            }
+            assert_eq!(
+                tracer.gloss_rng.next_u64(),
+                expected.next_u64(),
+                "depth {depth}: one glossy draw per hit, the last level's included"
+            );
+        }
     }
 
     #[test]
