@@ -512,7 +512,8 @@ mod tests {
     fn the_last_level_traces_no_spawned_ray_but_makes_its_glossy_draw() {
         // Two large, nearly flat glossy mirrors facing each other across the camera: the eye
         // ray meets the one ahead, its reflection the one behind, and so on, with a glossy
-        // draw (three numbers) at every hit. At the last level the spawned ray is not made, but its draw is.
+        // draw (three numbers) at every hit. At the last level the spawned ray is not made,
+        // but its draw is.
         let xml = r#"<scene>
     <camera><fov v="0.5"/><near_clip v=".01"/><far_clip v="100"/>
         <position x="0" y="0" z="0"/><orientation a="0" x="1" y="0" z="0"/></camera>
@@ -553,6 +554,37 @@ mod tests {
                 "depth {depth}: one glossy draw per hit, the last level's included"
             );
         }
+
+        // A glossy glass ball met at the last level (depth 1): it reflects a little (Schlick),
+        // so its reflected ray's draw is made though neither ray is.
+        let glass = load(
+            &xml.replace(
+                "<refractive_index v=\"0\"/></material>",
+                "<refractive_index v=\"1.5\"/></material>",
+            )
+            .replace(
+                "<position x=\"0\" y=\"0\" z=\"60\"/>",
+                "<position x=\"0\" y=\"0\" z=\"600\"/>",
+            ),
+        );
+        let stage = glass.stage(TextureFilter::Nearest, None);
+        let mut tracer = Tracer::new(stage, 1);
+        let gloss = Rng::from_state(11);
+        let mut rng = Rng::from_state(5);
+        let (_, counts) = tracer.sample(
+            &ray,
+            0.0,
+            f64::INFINITY,
+            &mut rng,
+            Some(gloss.clone()),
+            Eye::Walk,
+        );
+        assert_eq!(counts.radiance, 1);
+        let mut expected = gloss;
+        for _ in 0..3 {
+            expected.next_f64();
+        }
+        assert_eq!(tracer.gloss_rng.next_u64(), expected.next_u64());
     }
 
     #[test]
