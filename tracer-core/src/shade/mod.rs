@@ -526,12 +526,12 @@ mod tests {
     <sphere material="gloss"><position x="0" y="0" z="-60"/><radius v="50"/></sphere>
     <sphere material="gloss"><position x="0" y="0" z="60"/><radius v="50"/></sphere>
 </scene>"#;
-        let scene = load(xml);
-        let stage = scene.stage(TextureFilter::Nearest, None);
-        let ray = Ray::new(DVec3::ZERO, DVec3::new(0.0, 0.0, -1.0));
-        for depth in 1..=5u32 {
-            let mut tracer = Tracer::new(stage, depth);
+        // One sample straight ahead at `depth`: its colour, its radiance rays, and whether its
+        // glossy stream ends `draws` numbers past its seed.
+        let sample = |scene: &Scene, depth: u32, draws: u32| {
+            let mut tracer = Tracer::new(scene.stage(TextureFilter::Nearest, None), depth);
             let gloss = Rng::from_state(11);
+            let ray = Ray::new(DVec3::ZERO, DVec3::new(0.0, 0.0, -1.0));
             let mut rng = Rng::from_state(5);
             let (color, counts) = tracer.sample(
                 &ray,
@@ -541,17 +541,22 @@ mod tests {
                 Some(gloss.clone()),
                 Eye::Walk,
             );
-            // Every level hits a mirror: `depth` radiance rays, none escaping to the sky.
-            assert_eq!(counts.radiance, depth, "depth {depth}");
-            assert_eq!(color, DVec3::ZERO, "depth {depth}");
             let mut expected = gloss;
-            for _ in 0..3 * depth {
+            for _ in 0..draws {
                 expected.next_f64();
             }
+            let drew = tracer.gloss_rng.next_u64() == expected.next_u64();
+            (color, counts.radiance, drew)
+        };
+        let mirrors = load(xml);
+        for depth in 1..=5u32 {
+            // Every level hits a mirror: `depth` radiance rays, none escaping to the sky, and
+            // one glossy draw per hit, the last level's included.
+            let (color, rays, drew) = sample(&mirrors, depth, 3 * depth);
             assert_eq!(
-                tracer.gloss_rng.next_u64(),
-                expected.next_u64(),
-                "depth {depth}: one glossy draw per hit, the last level's included"
+                (color, rays, drew),
+                (DVec3::ZERO, depth, true),
+                "depth {depth}"
             );
         }
 
@@ -567,24 +572,8 @@ mod tests {
                 "<position x=\"0\" y=\"0\" z=\"600\"/>",
             ),
         );
-        let stage = glass.stage(TextureFilter::Nearest, None);
-        let mut tracer = Tracer::new(stage, 1);
-        let gloss = Rng::from_state(11);
-        let mut rng = Rng::from_state(5);
-        let (_, counts) = tracer.sample(
-            &ray,
-            0.0,
-            f64::INFINITY,
-            &mut rng,
-            Some(gloss.clone()),
-            Eye::Walk,
-        );
-        assert_eq!(counts.radiance, 1);
-        let mut expected = gloss;
-        for _ in 0..3 {
-            expected.next_f64();
-        }
-        assert_eq!(tracer.gloss_rng.next_u64(), expected.next_u64());
+        let (_, rays, drew) = sample(&glass, 1, 3);
+        assert_eq!((rays, drew), (1, true));
     }
 
     #[test]
