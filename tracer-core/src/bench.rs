@@ -17,7 +17,10 @@ use crate::world::{Hit, Leaving, Mesh, World};
 
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchReport {
+    /// The fastest of the repeats' builds, like every figure here.
     pub build_ms: f64,
+    /// The median of the repeats' builds, the figure `embree_rays.py` records for Embree's.
+    pub build_ms_median: f64,
     pub primary_mrays: f64,
     pub incoherent_mrays: f64,
     pub shadow_mrays: f64,
@@ -322,15 +325,18 @@ pub fn run(
     repeats: usize,
 ) -> Result<BenchReport, RenderError> {
     let repeats = repeats.max(1);
-    let build = best_of(repeats, || {
-        let started = Instant::now();
-        let world = std::hint::black_box(scene.world.rebuilt());
-        let elapsed = started.elapsed();
-        // Freeing the world is not building it (`embree_rays.py` releases its old scene
-        // before its timer starts, too).
-        drop(world);
-        elapsed
-    });
+    let builds: Vec<Duration> = (0..repeats)
+        .map(|_| {
+            let started = Instant::now();
+            let world = std::hint::black_box(scene.world.rebuilt());
+            let elapsed = started.elapsed();
+            // Freeing the world is not building it (`embree_rays.py` releases its old scene
+            // before its timer starts, too).
+            drop(world);
+            elapsed
+        })
+        .collect();
+    let build = builds.iter().min().copied().unwrap_or_default();
 
     let rays = RaySets::new(scene, settings)?;
     let time = |measure| best_of(repeats, || time_rays(scene, &rays, measure));
@@ -352,6 +358,7 @@ pub fn run(
     let mrays = |n: usize, t: Duration| n as f64 / t.as_secs_f64() / 1e6;
     Ok(BenchReport {
         build_ms: build.as_secs_f64() * 1e3,
+        build_ms_median: median(&builds).as_secs_f64() * 1e3,
         primary_mrays: mrays(rays.primary.len(), primary_time),
         incoherent_mrays: mrays(rays.incoherent.len(), incoherent_time),
         shadow_mrays: shadow_time.map_or(0.0, |t| mrays(rays.shadow.len(), t)),
@@ -406,10 +413,31 @@ fn best_of(repeats: usize, mut run: impl FnMut() -> Duration) -> Duration {
     (0..repeats).map(|_| run()).min().unwrap_or_default()
 }
 
+/// The middle time, or the mean of the two middle ones for an even count (as Python's
+/// `statistics.median`, which `embree_rays.py` uses); zero for none.
+fn median(times: &[Duration]) -> Duration {
+    let mut sorted = times.to_vec();
+    sorted.sort();
+    match sorted.len() {
+        0 => Duration::ZERO,
+        n if n % 2 == 1 => sorted[n / 2],
+        n => (sorted[n / 2 - 1] + sorted[n / 2]) / 2,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use glam::DVec3;
+
+    #[test]
+    fn the_median_is_the_middle_time_or_the_mean_of_the_two_middle_ones() {
+        let ms = Duration::from_millis;
+        assert_eq!(median(&[]), Duration::ZERO);
+        assert_eq!(median(&[ms(7)]), ms(7));
+        assert_eq!(median(&[ms(9), ms(1), ms(5), ms(30), ms(2)]), ms(5));
+        assert_eq!(median(&[ms(9), ms(1), ms(5), ms(30)]), ms(7));
+    }
 
     #[test]
     fn shadow_packets_hold_each_shadow_ray_once_with_its_blocks_neighbours() {

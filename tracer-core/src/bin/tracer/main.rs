@@ -214,7 +214,10 @@ fn run(cli: Cli) -> Result<(), Failure> {
                 println!("threads            {}", pool.current_num_threads());
                 println!("triangles          {}", scene.stats.triangles);
                 println!("bytes/triangle     {:.1}", report.bytes_per_triangle);
-                println!("BVH build          {:.2} ms", report.build_ms);
+                println!(
+                    "BVH build          {:.2} ms (median {:.2} ms)",
+                    report.build_ms, report.build_ms_median
+                );
                 println!(
                     "primary rays       {:.2} Mrays/s ({} rays)",
                     report.primary_mrays, report.primary_rays
