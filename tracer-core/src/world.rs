@@ -803,11 +803,19 @@ impl World {
     /// single ray, before it is entered for a packet's, see `object_packet`). Any order finds
     /// the same hits.
     fn nearest_instances_first(&self, origin: DVec3, slots: &mut [u32]) {
-        let distance = |slot: u32| match self.objects[slot as usize] {
+        slots.sort_unstable_by(|&a, &b| {
+            let (ka, kb) = (self.slot_order(a, origin), self.slot_order(b, origin));
+            ka.total_cmp(&kb).then(a.cmp(&b))
+        });
+    }
+
+    /// The key [`World::nearest_instances_first`] sorts by: a mesh instance's squared box
+    /// distance from `origin`, -1 for every other object.
+    fn slot_order(&self, slot: u32, origin: DVec3) -> f64 {
+        match self.objects[slot as usize] {
             Object::Model(i) => self.model_bounds[i as usize].distance_squared(origin),
             _ => -1.0,
-        };
-        slots.sort_unstable_by(|&a, &b| distance(a).total_cmp(&distance(b)).then(a.cmp(&b)));
+        }
     }
 
     /// The axis-aligned plane (axis, coordinate) of the scene triangle `hit` lies on, where
@@ -2881,13 +2889,10 @@ mod tests {
                 kept += slots.len();
                 if world.costly_top {
                     // Instances nearest first, after every other object.
-                    let key = |&slot: &u32| match world.objects[slot as usize] {
-                        Object::Model(i) => {
-                            world.model_bounds[i as usize].distance_squared(camera.position)
-                        }
-                        _ => -1.0,
-                    };
-                    let keys: Vec<f64> = slots.iter().map(key).collect();
+                    let keys: Vec<f64> = slots
+                        .iter()
+                        .map(|&slot| world.slot_order(slot, camera.position))
+                        .collect();
                     assert!(
                         keys.windows(2).all(|k| k[0] <= k[1]),
                         "pixel ({x}, {y}): {keys:?}"

@@ -282,6 +282,10 @@ impl<'a> Tracer<'a> {
         let leaving = [false, true].map(|outward| stage.world.leaving(hit, outward));
         let leaving_toward = |dir: DVec3| leaving[(dir.dot(s.geometric_normal) > 0.0) as usize];
         let error_scale = position.abs().max_element() + hit.t;
+        // A ray spawned at the last level would see black (`Tracer::trace`), so none is made
+        // there; the glossy draw of a reflection still is, so that the sample's later draws
+        // stay in place.
+        let last = level + 1 >= self.max_depth;
         let d = ray.dir;
 
         if s.ior == 0.0 {
@@ -324,11 +328,9 @@ impl<'a> Tracer<'a> {
             }
             let mut color = s.texture * direct;
             let tint = s.texture * s.specular;
-            // A ray spawned at the last level would see black (`Tracer::trace`), so it is not
-            // made; its glossy draw still is, so that the sample's later draws stay in place.
             if tint != DVec3::ZERO {
                 let dir = glossy(reflect(d, n), n, s.glossiness, &mut self.gloss_rng);
-                if level + 1 >= self.max_depth {
+                if last {
                     return color;
                 }
                 let reflected =
@@ -378,9 +380,6 @@ impl<'a> Tracer<'a> {
         let reflectance = crossing.reflectance;
         let tint = s.texture * s.specular;
         let mut color = DVec3::ZERO;
-        // At the last level both rays would see black: only the glossy draw is made (see the
-        // opaque case above).
-        let last = level + 1 >= self.max_depth;
         if reflectance > 0.0 && tint != DVec3::ZERO {
             let dir = glossy(
                 crossing.reflected(d),
