@@ -546,6 +546,10 @@ pub struct World {
     /// every triangle on one axis-aligned plane, the slot's own for another triangle or a
     /// sphere, or [`NO_SURFACE`].
     slot_surface: Vec<u32>,
+    /// Per surface (an index of `slot_surface`), where the slots a ray leaving it can meet
+    /// are few ([`LINEAR_TOP`] at most, none of them a mover): those slots, which such rays
+    /// test in turn instead of walking `top` (see [`World::traverse_top`]).
+    rest_of_surface: Vec<Option<Box<[u32]>>>,
     /// Whether rays test every object in turn rather than walk `top`: a single object, or a
     /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
@@ -640,6 +644,7 @@ impl World {
         let top = Bvh::build_costed(&bounds, mean_cost);
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
         let slot_surface = surfaces(&objects, &triangles, &model_triangles);
+        let rest_of_surface = rest_of_surfaces(&objects, &slot_surface);
         let top_level = TopLevel::new(&top);
         let triangle_normals = triangles
             .iter()
@@ -663,6 +668,7 @@ impl World {
             top,
             top_level,
             slot_surface,
+            rest_of_surface,
             linear_top,
             costly_top: costly > 0,
             model_bounds,
@@ -692,13 +698,34 @@ impl World {
     /// traversal is skipped where every slot is tested in turn (a single object, or a few
     /// spheres and triangles: `linear_top`), and rays outside the f32 box test's range take
     /// the generic one.
+    ///
+    /// A ray leaving a surface whose other slots are few (`rest_of_surface`) tests just those,
+    /// a mesh instance only where the ray may enter its box: the surface's own slots, which
+    /// `test` would skip, hold the ray's origin, so the walk would enter their boxes for
+    /// nothing (a shadow ray off cube.scene's floor walked both floor triangles' leaves to
+    /// reach the cube's).
     #[inline(always)]
     fn traverse_top<const ANY: bool>(
         &self,
         ray: &Ray,
         t_max: &mut f64,
+        leaving: Leaving,
         mut test: impl FnMut(usize, &mut f64) -> bool,
     ) -> bool {
+        if let Some(Some(rest)) = self.rest_of_surface.get(leaving.surface as usize) {
+            for &slot in rest.iter() {
+                let slot = slot as usize;
+                if let Object::Model(i) = self.objects[slot] {
+                    if !may_enter(&self.model_bounds[i as usize], ray, 0.0, *t_max) {
+                        continue;
+                    }
+                }
+                if test(slot, t_max) {
+                    return true;
+                }
+            }
+            return false;
+        }
         let mut leaf = |slots: std::ops::Range<usize>, t_max: &mut f64| {
             for slot in slots {
                 if test(slot, t_max) {
@@ -744,7 +771,7 @@ impl World {
         let mut world_tri_ray = None;
         let mut best: Option<Hit> = None;
         let mut t_max = t_max;
-        self.traverse_top::<false>(ray, &mut t_max, |slot, t_max| {
+        self.traverse_top::<false>(ray, &mut t_max, leaving, |slot, t_max| {
             if self.skips(slot, leaving) {
                 return false;
             }
@@ -1091,7 +1118,7 @@ impl World {
     pub fn occluded_leaving(&self, ray: &Ray, t_max: f64, leaving: Leaving) -> bool {
         let mut world_tri_ray = None;
         let mut t_limit = t_max;
-        self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
+        self.traverse_top::<true>(ray, &mut t_limit, leaving, |slot, t_max| {
             !self.skips(slot, leaving)
                 && self
                     .hit_object::<true>(
@@ -1310,7 +1337,7 @@ impl World {
         }
         let mut t_limit = t_max;
         let mut blocker = None;
-        let found = self.traverse_top::<true>(ray, &mut t_limit, |slot, t_max| {
+        let found = self.traverse_top::<true>(ray, &mut t_limit, leaving, |slot, t_max| {
             if self.skips(slot, leaving) {
                 return false;
             }
@@ -1659,6 +1686,37 @@ fn surfaces(
                 next - 1
             }
             None => NO_SURFACE,
+        })
+        .collect()
+}
+
+/// Per surface index of `slot_surface` (see [`surfaces`]), the slots not on that surface,
+/// where they are at most [`LINEAR_TOP`] and none is a mover (whose box the rays' times
+/// decide); None elsewhere. With so few left, testing them in turn (a mesh instance behind
+/// its box) costs less than the walk, which would also enter the boxes of the surface's own
+/// slots: they hold the origin of every ray leaving it.
+fn rest_of_surfaces(objects: &[Object], slot_surface: &[u32]) -> Vec<Option<Box<[u32]>>> {
+    let surfaces = (slot_surface.iter())
+        .filter(|&&s| s != NO_SURFACE)
+        .map(|&s| s as usize + 1)
+        .max()
+        .unwrap_or(0);
+    let on = |surface: usize| {
+        slot_surface
+            .iter()
+            .filter(|&&s| s == surface as u32)
+            .count()
+    };
+    (0..surfaces)
+        .map(|surface| {
+            if objects.len() - on(surface) > LINEAR_TOP
+                || objects.iter().any(|o| matches!(o, Object::Mover(_)))
+            {
+                return None;
+            }
+            let rest = (0..objects.len() as u32)
+                .filter(|&slot| slot_surface[slot as usize] != surface as u32);
+            Some(rest.collect())
         })
         .collect()
 }
@@ -2828,6 +2886,111 @@ mod tests {
             .is_none());
         assert!(world.occluded(&up, 5.0));
         assert!(!world.occluded_by(&up, 5.0, &mut ShadowCache::default(), leaving));
+    }
+
+    #[test]
+    fn rays_leaving_a_surface_with_few_others_test_those_and_find_every_hit() {
+        // cube.scene's make-up: a floor of two triangles, a mesh instance above it (a bumpy
+        // grid, tilted), a sphere and a tilted triangle. Rays leaving the floor test the
+        // other three slots in turn, the instance behind its box.
+        let mut next = crate::test_rng::uniform(41);
+        let floor = |a: DVec3, b: DVec3, c: DVec3| WorldTriangle {
+            positions: [a, b, c],
+            normals: [DVec3::Y; 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let (a, b, c, d) = (
+            DVec3::new(-4.0, 0.0, -4.0),
+            DVec3::new(-4.0, 0.0, 4.0),
+            DVec3::new(4.0, 0.0, 4.0),
+            DVec3::new(4.0, 0.0, -4.0),
+        );
+        let mut tilted = floor(
+            DVec3::new(-2.0, 0.5, 1.0),
+            DVec3::new(-1.0, 2.0, 1.5),
+            DVec3::new(-2.5, 1.0, 2.5),
+        );
+        tilted.normals = [DVec3::X; 3];
+        let triangles = vec![floor(a, b, c), floor(c, d, a), tilted];
+        let mesh = grid_mesh(6, |x, y| 0.2 * (x * 7.0).sin() * (y * 5.0).cos());
+        let model = Model {
+            transform: Transform::new(
+                DVec3::new(0.5, 1.0, -0.5),
+                glam::DQuat::from_rotation_x(1.1),
+                DVec3::splat(1.5),
+            ),
+            mesh: 0,
+            material: 0,
+        };
+        let sphere = Sphere {
+            transform: Transform::new(DVec3::new(1.5, 0.7, 1.5), glam::DQuat::IDENTITY, DVec3::ONE),
+            radius: 0.6,
+            material: 0,
+        };
+        let world = World::with_movers(
+            vec![sphere],
+            triangles,
+            vec![mesh],
+            vec![model],
+            vec![],
+            (0.0, 0.0),
+        );
+        let down = Ray::new(DVec3::new(3.0, 5.0, -3.0), -DVec3::Y);
+        let on_floor = world.intersect(&down, 0.0, f64::INFINITY).unwrap();
+        let up = world.leaving(&on_floor, true);
+        let surface = up.surface as usize;
+        assert_eq!(
+            world.rest_of_surface[surface].as_deref().map(<[u32]>::len),
+            Some(3),
+            "the floor's rays test the three other slots in turn"
+        );
+        // Every slot off the floor, tested in slot order with no culling: what a ray leaving
+        // the floor can meet, by definition.
+        let brute = |ray: &Ray, t_max: f64| {
+            let (mut best, mut limit) = (None, t_max);
+            for slot in 0..world.objects.len() {
+                if world.skips(slot, up) {
+                    continue;
+                }
+                let bound = tie_bound(best.is_some(), limit);
+                if let Some(h) =
+                    world.hit_object::<false>(slot, ray, 0.0, bound, up.prim_in(slot), &mut None)
+                {
+                    keep_nearer(&mut best, &mut limit, slot, h);
+                }
+            }
+            best
+        };
+        let (mut hits, mut model_hits, mut blocked) = (0, 0, 0);
+        let mut cache = ShadowCache::default();
+        for _ in 0..4000 {
+            let from = DVec3::new(next() * 8.0 - 4.0, 0.0, next() * 8.0 - 4.0);
+            let dir = DVec3::new(next() - 0.5, next(), next() - 0.5).normalize();
+            let ray = Ray::new(from, dir);
+            let expected = brute(&ray, f64::INFINITY);
+            let found = world.intersect_leaving(&ray, 0.0, f64::INFINITY, up);
+            assert_eq!(
+                found.map(|h| (h.t.to_bits(), h.object, h.prim)),
+                expected.map(|h| (h.t.to_bits(), h.object, h.prim)),
+                "ray from {from} along {dir}"
+            );
+            hits += found.is_some() as usize;
+            model_hits += found
+                .is_some_and(|h| matches!(world.objects[h.object as usize], Object::Model(_)))
+                as usize;
+            // A shadow ray toward a point 3 units along: blocked where the nearest hit is
+            // nearer, whichever remembered blocker the cache holds.
+            let length = 3.0;
+            let is_blocked = expected.is_some_and(|h| h.t < length);
+            assert_eq!(world.occluded_leaving(&ray, length, up), is_blocked);
+            assert_eq!(world.occluded_by(&ray, length, &mut cache, up), is_blocked);
+            blocked += is_blocked as usize;
+        }
+        assert!(
+            hits > 200 && model_hits > 50 && blocked > 150,
+            "{hits} {model_hits} {blocked}"
+        );
     }
 
     /// A world of `mesh` alone, as one model at `position` turned by `tilt` about x.
