@@ -550,6 +550,10 @@ pub struct World {
     /// are few ([`LINEAR_TOP`] at most, none of them a mover): those slots, which such rays
     /// test in turn instead of walking `top` (see [`World::traverse_top`]).
     rest_of_surface: Vec<Option<Box<[u32]>>>,
+    /// Per surface, where the world is small ([`SURFACE_TOPS_UP_TO`] slots) and its other
+    /// slots are too many for `rest_of_surface`: a top level over those slots alone, which a
+    /// ray leaving the surface walks instead of `top` (see [`World::traverse_top`]).
+    top_without_surface: Vec<Option<SubTop>>,
     /// Whether rays test every object in turn rather than walk `top`: a single object, or a
     /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
@@ -645,6 +649,14 @@ impl World {
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
         let slot_surface = surfaces(&objects, &triangles, &model_triangles);
         let rest_of_surface = rest_of_surfaces(&objects, &slot_surface);
+        let slot_bounds: Vec<Aabb> = top.order.iter().map(|&o| bounds[o as usize]).collect();
+        let top_without_surface = tops_without_surfaces(
+            &objects,
+            &slot_surface,
+            &rest_of_surface,
+            &slot_bounds,
+            mean_cost,
+        );
         let top_level = TopLevel::new(&top);
         let triangle_normals = triangles
             .iter()
@@ -669,6 +681,7 @@ impl World {
             top_level,
             slot_surface,
             rest_of_surface,
+            top_without_surface,
             linear_top,
             costly_top: costly > 0,
             model_bounds,
@@ -726,6 +739,17 @@ impl World {
             }
             return false;
         }
+        if let Some(Some(sub)) = self.top_without_surface.get(leaving.surface as usize) {
+            let leaf = |positions: std::ops::Range<usize>, t_max: &mut f64| {
+                for &slot in &sub.slots[positions] {
+                    if test(slot as usize, t_max) {
+                        return true;
+                    }
+                }
+                false
+            };
+            return walk_top::<ANY>(&sub.bvh, &sub.level, sub.costly, ray, t_max, leaf);
+        }
         let mut leaf = |slots: std::ops::Range<usize>, t_max: &mut f64| {
             for slot in slots {
                 if test(slot, t_max) {
@@ -737,19 +761,14 @@ impl World {
         if self.linear_top {
             return leaf(0..self.objects.len(), t_max);
         }
-        let walked = if !ANY && self.costly_top {
-            self.top_level.walk_nearest(ray, t_max, &mut leaf)
-        } else {
-            self.top_level.walk::<ANY>(ray, t_max, &mut leaf)
-        };
-        if let Some(found) = walked {
-            return found;
-        }
-        if ANY {
-            self.top.traverse_any(ray, t_max, leaf)
-        } else {
-            self.top.traverse(ray, t_max, leaf)
-        }
+        walk_top::<ANY>(
+            &self.top,
+            &self.top_level,
+            self.costly_top,
+            ray,
+            t_max,
+            leaf,
+        )
     }
 
     /// The nearest hit with t in (t_min, t_max); `ray.dir` need not be unit length.
@@ -808,13 +827,17 @@ impl World {
         slots: &mut Vec<u32>,
     ) {
         slots.clear();
+        // Made for the first triangle met (a frustum that meets none, as among spheres, never
+        // needs them).
+        let mut edges = None;
         // A single object too: pixels whose frustum misses its box (most of dragon.scene's)
         // then test nothing at all.
         self.top_level.frustum(origin, planes, &mut |range| {
             slots.extend(
                 range
                     .filter(|&slot| {
-                        !self.skips(slot, leaving) && self.may_meet_frustum(slot, origin, planes)
+                        !self.skips(slot, leaving)
+                            && self.may_meet_frustum(slot, origin, planes, &mut edges)
                     })
                     .map(|s| s as u32),
             )
@@ -893,9 +916,26 @@ impl World {
     /// sphere or triangle lies wholly behind one of the planes. A box takes in much that its
     /// object does not (a rotated ellipsoid's corners, a slanted triangle's half), and a
     /// pixel left with no slot needs no eye ray at all. The frustum is a twentieth of a pixel
-    /// wider than its rays, far beyond the rounding of these tests.
-    fn may_meet_frustum(&self, slot: usize, origin: DVec3, planes: &[DVec3; 4]) -> bool {
-        let behind_one = |corners| triangle_behind_a_plane(corners, origin, planes);
+    /// wider than its rays, far beyond the rounding of these tests. A triangle is also left
+    /// out where the plane through the apex and one of its sides has the whole frustum on
+    /// the far side (its edge directions, made into `edges` when first needed): the planes
+    /// alone keep a large triangle beside the frustum, such as the half of cube.scene's floor
+    /// a pixel does not see.
+    fn may_meet_frustum(
+        &self,
+        slot: usize,
+        origin: DVec3,
+        planes: &[DVec3; 4],
+        edges: &mut Option<[DVec3; 4]>,
+    ) -> bool {
+        let mut behind_one = |corners| {
+            triangle_behind_a_plane(corners, origin, planes)
+                || triangle_beside_a_frustum(
+                    corners,
+                    origin,
+                    edges.get_or_insert_with(|| frustum_edges(planes)),
+                )
+        };
         match self.objects[slot] {
             Object::Sphere(i) | Object::TranslatedSphere(i) => {
                 // The world ellipsoid is M·p + c for |p| ≤ r: along a plane's normal n it
@@ -1690,6 +1730,85 @@ fn surfaces(
         .collect()
 }
 
+/// A top level's walk (`level`, the layout of `bvh`'s nodes), `leaf` handed the positions of
+/// its leaves' objects: nearest leaf first for closest hits among costly objects
+/// ([`TopLevel::walk_nearest`]), else as [`TopLevel::walk`] orders them; rays out of the f32
+/// test's range take `bvh`'s generic traversal.
+#[inline(always)]
+fn walk_top<const ANY: bool>(
+    bvh: &Bvh,
+    level: &TopLevel,
+    costly: bool,
+    ray: &Ray,
+    t_max: &mut f64,
+    mut leaf: impl FnMut(std::ops::Range<usize>, &mut f64) -> bool,
+) -> bool {
+    let walked = if !ANY && costly {
+        level.walk_nearest(ray, t_max, &mut leaf)
+    } else {
+        level.walk::<ANY>(ray, t_max, &mut leaf)
+    };
+    if let Some(found) = walked {
+        return found;
+    }
+    if ANY {
+        bvh.traverse_any(ray, t_max, leaf)
+    } else {
+        bvh.traverse(ray, t_max, leaf)
+    }
+}
+
+/// The top level over the slots off one surface ([`World::top_without_surface`]).
+#[derive(Clone, Debug)]
+struct SubTop {
+    bvh: Bvh,
+    level: TopLevel,
+    /// The world slot at each of `bvh`'s leaf positions.
+    slots: Box<[u32]>,
+    /// Whether those slots hold mesh instances (see [`World::costly_top`]).
+    costly: bool,
+}
+
+/// Worlds of at most this many top-level slots get a top level per surface without it: a
+/// few dozen small trees, built in microseconds each.
+const SURFACE_TOPS_UP_TO: usize = 64;
+
+/// Per surface index of `slot_surface`, a top level over the slots off it, for small worlds
+/// of no movers where `rest_of_surface` has no list; built as `top` is (`mean_cost`, the
+/// slots' boxes `slot_bounds`).
+fn tops_without_surfaces(
+    objects: &[Object],
+    slot_surface: &[u32],
+    rest_of_surface: &[Option<Box<[u32]>>],
+    slot_bounds: &[Aabb],
+    mean_cost: f64,
+) -> Vec<Option<SubTop>> {
+    if objects.len() > SURFACE_TOPS_UP_TO || objects.iter().any(|o| matches!(o, Object::Mover(_))) {
+        return Vec::new();
+    }
+    (0..rest_of_surface.len())
+        .map(|surface| {
+            if rest_of_surface[surface].is_some() {
+                return None;
+            }
+            let off: Vec<u32> = (0..objects.len() as u32)
+                .filter(|&slot| slot_surface[slot as usize] != surface as u32)
+                .collect();
+            let bounds: Vec<Aabb> = off.iter().map(|&slot| slot_bounds[slot as usize]).collect();
+            let bvh = Bvh::build_costed(&bounds, mean_cost);
+            let slots = bvh.order.iter().map(|&i| off[i as usize]).collect();
+            Some(SubTop {
+                level: TopLevel::new(&bvh),
+                costly: off
+                    .iter()
+                    .any(|&slot| matches!(objects[slot as usize], Object::Model(_))),
+                bvh,
+                slots,
+            })
+        })
+        .collect()
+}
+
 /// Per surface index of `slot_surface` (see [`surfaces`]), the slots not on that surface,
 /// where they are at most [`LINEAR_TOP`] and none is a mover (whose box the rays' times
 /// decide); None elsewhere. With so few left, testing them in turn (a mesh instance behind
@@ -1754,6 +1873,35 @@ fn box_behind_a_plane<const N: usize>(
     planes.iter().any(|n| {
         let far = DVec3::select(n.cmpge(DVec3::ZERO), max, min);
         n.dot(far) < 0.0
+    })
+}
+
+/// The edge directions of the frustum whose inward plane normals are `planes` (plane k
+/// between edges k and k + 1, as [`crate::camera::Camera::frustum`] makes them): each the
+/// line where two neighbouring planes meet, pointing into the frustum. Its rays are the
+/// positive combinations of these.
+fn frustum_edges(planes: &[DVec3; 4]) -> [DVec3; 4] {
+    std::array::from_fn(|k| {
+        let d = planes[(k + 3) % 4].cross(planes[k]);
+        if planes[(k + 1) % 4].dot(d) + planes[(k + 2) % 4].dot(d) < 0.0 {
+            -d
+        } else {
+            d
+        }
+    })
+}
+
+/// Whether the triangle with `corners` lies beside the frustum from `apex` with edge
+/// directions `edges` ([`frustum_edges`]): for one of its sides, the plane through the apex
+/// and that side has the triangle's third corner on one side and every edge direction
+/// strictly on the other, so no ray of the frustum (a positive combination of the edges)
+/// reaches the triangle. A triangle whose plane holds the apex is never left out this way.
+fn triangle_beside_a_frustum(corners: &[DVec3; 3], apex: DVec3, edges: &[DVec3; 4]) -> bool {
+    let v = corners.map(|c| c - apex);
+    (0..3).any(|i| {
+        let normal = v[i].cross(v[(i + 1) % 3]);
+        let third = normal.dot(v[(i + 2) % 3]);
+        third != 0.0 && edges.iter().all(|&d| normal.dot(d) * third < 0.0)
     })
 }
 
@@ -2889,10 +3037,17 @@ mod tests {
     }
 
     #[test]
-    fn rays_leaving_a_surface_with_few_others_test_those_and_find_every_hit() {
+    fn rays_leaving_a_surface_test_only_what_lies_off_it_and_find_every_hit() {
         // cube.scene's make-up: a floor of two triangles, a mesh instance above it (a bumpy
         // grid, tilted), a sphere and a tilted triangle. Rays leaving the floor test the
-        // other three slots in turn, the instance behind its box.
+        // other three slots in turn, the instance behind its box; with six more spheres they
+        // walk a top level of the nine slots off the floor.
+        for extra in [0, 6] {
+            check_rays_leaving_the_floor(extra);
+        }
+    }
+
+    fn check_rays_leaving_the_floor(extra_spheres: usize) {
         let mut next = crate::test_rng::uniform(41);
         let floor = |a: DVec3, b: DVec3, c: DVec3| WorldTriangle {
             positions: [a, b, c],
@@ -2923,13 +3078,18 @@ mod tests {
             mesh: 0,
             material: 0,
         };
-        let sphere = Sphere {
-            transform: Transform::new(DVec3::new(1.5, 0.7, 1.5), glam::DQuat::IDENTITY, DVec3::ONE),
-            radius: 0.6,
+        let sphere = |centre: DVec3, radius: f64| Sphere {
+            transform: Transform::new(centre, glam::DQuat::IDENTITY, DVec3::ONE),
+            radius,
             material: 0,
         };
+        let mut spheres = vec![sphere(DVec3::new(1.5, 0.7, 1.5), 0.6)];
+        for _ in 0..extra_spheres {
+            let centre = DVec3::new(next() * 6.0 - 3.0, next() * 2.0 + 0.3, next() * 6.0 - 3.0);
+            spheres.push(sphere(centre, 0.1 + next() * 0.3));
+        }
         let world = World::with_movers(
-            vec![sphere],
+            spheres,
             triangles,
             vec![mesh],
             vec![model],
@@ -2940,11 +3100,17 @@ mod tests {
         let on_floor = world.intersect(&down, 0.0, f64::INFINITY).unwrap();
         let up = world.leaving(&on_floor, true);
         let surface = up.surface as usize;
-        assert_eq!(
-            world.rest_of_surface[surface].as_deref().map(<[u32]>::len),
-            Some(3),
-            "the floor's rays test the three other slots in turn"
-        );
+        let off_floor = 3 + extra_spheres;
+        if off_floor <= LINEAR_TOP {
+            assert_eq!(
+                world.rest_of_surface[surface].as_deref().map(<[u32]>::len),
+                Some(off_floor),
+                "the floor's rays test the slots off it in turn"
+            );
+        } else {
+            let sub = world.top_without_surface[surface].as_ref();
+            assert_eq!(sub.map(|sub| sub.slots.len()), Some(off_floor));
+        }
         // Every slot off the floor, tested in slot order with no culling: what a ray leaving
         // the floor can meet, by definition.
         let brute = |ray: &Ray, t_max: f64| {
@@ -3170,6 +3336,45 @@ mod tests {
                 "scale {scale}: {kept} slots kept of {boxes_met} boxes met"
             );
         }
+    }
+
+    #[test]
+    fn a_pixels_frustum_leaves_out_the_floor_triangle_beside_it() {
+        // cube.scene's floor and view: two triangles of 4,000 units meeting on a diagonal
+        // under the camera. Each pixel's frustum lies beside one of them, except near the
+        // diagonal, though neither lies behind one of its planes.
+        let floor = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| WorldTriangle {
+            positions: [a, b, c].map(|[x, z]| DVec3::new(x, 0.0, z)),
+            normals: [DVec3::Y; 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let (a, b, c, d) = ([-2e3, -2e3], [-2e3, 2e3], [2e3, 2e3], [2e3, -2e3]);
+        let triangles = vec![floor(a, b, c), floor(c, d, a)];
+        let world = World::with_movers(vec![], triangles, vec![], vec![], vec![], (0.0, 0.0));
+        let camera = crate::camera::Camera::from_orientation(
+            DVec3::new(0.0, 6.0, 11.0),
+            glam::DQuat::from_axis_angle(DVec3::X, -0.5),
+            0.785,
+            0.01,
+            200.0,
+            4.0 / 3.0,
+        );
+        let mut next = crate::test_rng::uniform(5);
+        let (w, h) = (64, 48);
+        let (hits, kept, boxes_met) =
+            check_frustum_slots(&world, &camera, (w, h), (0.01, 200.0), &mut next);
+        let pixels = (w * h) as usize;
+        assert!(hits > 12 * pixels as u32 / 2, "{hits} hits");
+        assert_eq!(
+            boxes_met,
+            2 * pixels,
+            "both boxes hold every pixel's frustum"
+        );
+        assert!(
+            kept * 10 < pixels * 12,
+            "{kept} slots kept over {pixels} pixels"
+        );
     }
 
     #[test]
