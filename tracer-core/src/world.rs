@@ -1815,22 +1815,22 @@ fn tops_without_surfaces(
 /// its box) costs less than the walk, which would also enter the boxes of the surface's own
 /// slots: they hold the origin of every ray leaving it.
 fn rest_of_surfaces(objects: &[Object], slot_surface: &[u32]) -> Vec<Option<Box<[u32]>>> {
-    let surfaces = (slot_surface.iter())
-        .filter(|&&s| s != NO_SURFACE)
-        .map(|&s| s as usize + 1)
-        .max()
-        .unwrap_or(0);
-    let on = |surface: usize| {
-        slot_surface
-            .iter()
-            .filter(|&&s| s == surface as u32)
-            .count()
-    };
-    (0..surfaces)
-        .map(|surface| {
-            if objects.len() - on(surface) > LINEAR_TOP
-                || objects.iter().any(|o| matches!(o, Object::Mover(_)))
-            {
+    // Slots per surface counted in one pass: a world of many triangles has as many surfaces,
+    // and counting each surface's slots over all of them was quadratic.
+    let mut on = Vec::new();
+    for &surface in slot_surface.iter().filter(|&&s| s != NO_SURFACE) {
+        if on.len() <= surface as usize {
+            on.resize(surface as usize + 1, 0);
+        }
+        on[surface as usize] += 1;
+    }
+    let movers = objects.iter().any(|o| matches!(o, Object::Mover(_)));
+    on.iter()
+        .enumerate()
+        .map(|(surface, &count)| {
+            // At most one surface holds more than half the slots, so only one list is made
+            // in a world of more than 2 * LINEAR_TOP slots.
+            if movers || objects.len() - count > LINEAR_TOP {
                 return None;
             }
             let rest = (0..objects.len() as u32)
