@@ -41,7 +41,19 @@ pub struct Mesh {
     pub bvh: Bvh,
     /// The triangles' corners in f32 blocks for the traversal's pre-test.
     pub blocks: Vec<TriangleBlock>,
+    /// Per triangle slot of a mesh of at most [`EXITS_UP_TO`] slots (empty for a larger
+    /// one), the sides of its plane that a ray leaving it cannot meet the mesh from: bit 0
+    /// ([`FRONT_EXITS`]) where the whole mesh lies on or behind the plane (its winding
+    /// normal's side is open), bit 1 ([`BACK_EXITS`]) where it lies on or in front.
+    exits: Vec<u8>,
 }
+
+/// Meshes of at most this many triangle slots get [`Mesh::exits`]: a byte each, made from
+/// the corners of the mesh's box.
+const EXITS_UP_TO: usize = 4096;
+/// [`Mesh::exits`] bits.
+const FRONT_EXITS: u8 = 1;
+const BACK_EXITS: u8 = 2;
 
 /// Where the exact triangle test finds a mesh's corners.
 #[derive(Clone, Debug)]
@@ -93,6 +105,54 @@ impl Mesh {
     /// Triangle slots, padding included.
     pub fn slots(&self) -> usize {
         self.indices.len()
+    }
+
+    /// Whether a ray leaving triangle slot `slot` toward the side its winding normal points
+    /// to (`front`), or toward the other, can meet no triangle of the mesh: the whole mesh
+    /// lies on the plane or beyond it, and the ray, spawned off the plane on its own side,
+    /// heads away from it (a convex mesh's outward rays, from every face).
+    #[inline]
+    pub fn exits(&self, slot: u32, front: bool) -> bool {
+        let bit = if front { FRONT_EXITS } else { BACK_EXITS };
+        self.exits.get(slot as usize).is_some_and(|&e| e & bit != 0)
+    }
+
+    /// [`Mesh::exits`] for every slot, tested against the eight corners of the mesh's box
+    /// (which hold every vertex): exact where the mesh is a box with faces on its box's
+    /// planes, and never claimed where rounding leaves a corner a hair beyond a plane.
+    fn exits_by_slot(&self) -> Vec<u8> {
+        let b = self.bvh.bounds();
+        if !(b.min.is_finite() && b.max.is_finite()) {
+            return vec![0; self.slots()];
+        }
+        let box_corners: [DVec3; 8] = std::array::from_fn(|k| {
+            DVec3::new(
+                if k & 1 == 0 { b.min.x } else { b.max.x },
+                if k & 2 == 0 { b.min.y } else { b.max.y },
+                if k & 4 == 0 { b.min.z } else { b.max.z },
+            )
+        });
+        (0..self.slots())
+            .map(|slot| {
+                if self.indices[slot] == PADDING_TRIANGLE {
+                    return 0;
+                }
+                let [p0, p1, p2] = self.corners(slot);
+                let n = (p1 - p0).cross(p2 - p0);
+                if n == DVec3::ZERO || !n.is_finite() {
+                    return 0;
+                }
+                let sides = box_corners.map(|c| n.dot(c - p0));
+                let mut exits = 0;
+                if sides.iter().all(|&d| d <= 0.0) {
+                    exits |= FRONT_EXITS;
+                }
+                if sides.iter().all(|&d| d >= 0.0) {
+                    exits |= BACK_EXITS;
+                }
+                exits
+            })
+            .collect()
     }
 
     /// Bytes of the f64 corners (none where the blocks hold them).
@@ -205,7 +265,11 @@ impl Mesh {
             tex_coords,
             bvh,
             blocks,
+            exits: Vec::new(),
         };
+        if mesh.slots() <= EXITS_UP_TO {
+            mesh.exits = mesh.exits_by_slot();
+        }
         if mesh.large() {
             mesh.bvh = std::mem::take(&mut mesh.bvh).with_spans();
         }
@@ -543,8 +607,9 @@ pub struct World {
     /// `top`'s nodes in the layout of the top level's own traversal.
     top_level: TopLevel,
     /// Per top-level slot, what a ray leaving it skips ([`Leaving`]): an index shared by
-    /// every triangle on one axis-aligned plane, the slot's own for another triangle or a
-    /// sphere, or [`NO_SURFACE`].
+    /// every triangle on one axis-aligned plane, the slot's own for another triangle, a
+    /// sphere or a mesh instance (skipped whole only by rays its mesh lies behind), or
+    /// [`NO_SURFACE`].
     slot_surface: Vec<u32>,
     /// Per surface (an index of `slot_surface`), where the slots a ray leaving it can meet
     /// are few ([`LINEAR_TOP`] at most, none of them a mover): those slots, which such rays
@@ -1574,12 +1639,21 @@ impl World {
     #[inline]
     pub fn leaving(&self, hit: &Hit, outward: bool) -> Leaving {
         let slot = hit.object as usize;
-        match self.slot_surface[slot] {
-            // A mesh triangle is flat: a ray off it to either side cannot meet it again.
-            NO_SURFACE if matches!(self.objects[slot], Object::Model(_)) => Leaving {
-                surface: Leaving::NOTHING.surface,
+        if let Object::Model(i) = self.objects[slot] {
+            // A mesh triangle is flat: a ray off it to either side cannot meet it again. Where
+            // the mesh lies wholly behind the side the ray heads to, it cannot meet the mesh
+            // at all (the model's own surface: see `surfaces`).
+            let mesh = &self.meshes[self.models[i as usize].mesh as usize];
+            return Leaving {
+                surface: if mesh.exits(hit.prim, outward) {
+                    self.slot_surface[slot]
+                } else {
+                    Leaving::NOTHING.surface
+                },
                 mesh_triangle: (hit.object, hit.prim),
-            },
+            };
+        }
+        match self.slot_surface[slot] {
             NO_SURFACE => Leaving::NOTHING,
             // A ray into a sphere meets its far side.
             _ if !outward
@@ -1685,8 +1759,8 @@ impl World {
 
 /// Per top-level slot, what a ray leaving it skips: the index of the axis-aligned plane its
 /// triangle lies in (all three corners share one coordinate exactly), shared by every slot on
-/// the same plane; a fresh index for any other triangle or a sphere; [`NO_SURFACE`] for
-/// other objects.
+/// the same plane; a fresh index for any other triangle, a sphere or a mesh instance;
+/// [`NO_SURFACE`] for movers.
 fn surfaces(
     objects: &[Object],
     triangles: &[WorldTriangle],
@@ -1710,12 +1784,15 @@ fn surfaces(
             Object::Triangle(i) => Some(plane_of(&triangles[i as usize].positions)),
             Object::ModelTriangle(i) => Some(plane_of(&model_triangles[i as usize].corners)),
             Object::Sphere(_) | Object::TranslatedSphere(_) => Some(None),
+            // Named only by rays that leave the mesh from a side it lies wholly behind
+            // (`Mesh::exits`); other rays leaving it skip just their own triangle.
+            Object::Model(_) => Some(None),
             _ => None,
         })
         .collect();
-    // A triangle on no axis-aligned plane, or a sphere, is a surface of its own: rays
-    // leaving it skip it alone (whether another triangle shares a plane exactly is not
-    // known).
+    // A triangle on no axis-aligned plane, a sphere or a mesh instance is a surface of its
+    // own: rays leaving it skip it alone (whether another triangle shares a plane exactly is
+    // not known).
     let mut next = planes.len() as u32;
     slots
         .into_iter()
@@ -3156,6 +3233,127 @@ mod tests {
         assert!(
             hits > 200 && model_hits > 50 && blocked > 150,
             "{hits} {model_hits} {blocked}"
+        );
+    }
+
+    #[test]
+    fn rays_leaving_a_box_mesh_outward_skip_it_whole_and_find_every_hit() {
+        // A cube mesh (wound outward) turned and scaled above a floor, as in cube.scene.
+        let corner = |k: usize| {
+            DVec3::new(
+                (k & 1) as f64 * 2.0 - 1.0,
+                (k >> 1 & 1) as f64 * 2.0 - 1.0,
+                (k >> 2 & 1) as f64 * 2.0 - 1.0,
+            )
+        };
+        let positions: Vec<DVec3> = (0..8).map(corner).collect();
+        let mut triangles = Vec::new();
+        for axis in 0..3 {
+            for side in 0..2 {
+                let on: Vec<u32> = (0..8u32)
+                    .filter(|&k| (k as usize >> axis & 1) == side)
+                    .collect();
+                // The face's corners in a cycle: 0, 1, 3, 2 of those four.
+                let [a, b, c, d] = [on[0], on[1], on[3], on[2]];
+                for tri in [[a, b, c], [a, c, d]] {
+                    let [p, q, r] = tri.map(|v| positions[v as usize]);
+                    let outward = (q - p).cross(r - p).dot(p + q + r) > 0.0;
+                    triangles.push(if outward {
+                        tri
+                    } else {
+                        [tri[0], tri[2], tri[1]]
+                    });
+                }
+            }
+        }
+        let mesh = Mesh::new(
+            &positions,
+            vec![DVec3::Y; 8],
+            vec![DVec2::ZERO; 8],
+            &triangles,
+        );
+        assert!(
+            (0..mesh.slots() as u32)
+                .filter(|&s| mesh.indices[s as usize] != PADDING_TRIANGLE)
+                .all(|s| mesh.exits(s, true) && !mesh.exits(s, false)),
+            "every face of a box is left to the outside only"
+        );
+        let bumpy = grid_mesh(4, |x, y| 0.3 * (x * 5.0).sin() * (y * 3.0).cos());
+        assert!(
+            (0..bumpy.slots() as u32).any(|s| !bumpy.exits(s, true) && !bumpy.exits(s, false)),
+            "a bumpy grid's triangles do not all have the grid on one side"
+        );
+        let model = Model {
+            transform: Transform::new(
+                DVec3::new(0.0, 1.5, 0.0),
+                glam::DQuat::from_rotation_y(1.3),
+                DVec3::new(1.0, 0.7, 1.3),
+            ),
+            mesh: 0,
+            material: 0,
+        };
+        let floor = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| WorldTriangle {
+            positions: [a, b, c].map(|[x, z]| DVec3::new(x, 0.0, z)),
+            normals: [DVec3::Y; 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let (a, b, c, d) = ([-9.0, -9.0], [-9.0, 9.0], [9.0, 9.0], [9.0, -9.0]);
+        let world = World::with_movers(
+            vec![],
+            vec![floor(a, b, c), floor(c, d, a)],
+            vec![mesh],
+            vec![model],
+            vec![],
+            (0.0, 0.0),
+        );
+        let mut next = crate::test_rng::uniform(77);
+        let (mut outward, mut inward, mut floor_hits) = (0, 0, 0);
+        for _ in 0..3000 {
+            let from = DVec3::new(next() * 8.0 - 4.0, 6.0, next() * 8.0 - 4.0);
+            let eye = Ray::new(from, (DVec3::new(0.0, 1.5, 0.0) - from).normalize());
+            let Some(hit) = world.intersect(&eye, 0.0, f64::INFINITY) else {
+                continue;
+            };
+            if !matches!(world.objects[hit.object as usize], Object::Model(_)) {
+                continue;
+            }
+            let patch = world.patch(&eye, &hit);
+            let p = eye.at(hit.t);
+            let error_scale = p.abs().max_element() + hit.t;
+            let dir = DVec3::new(next() - 0.5, next() - 0.5, next() - 0.5).normalize();
+            let front = dir.dot(patch.geometric_normal) > 0.0;
+            let leaving = world.leaving(&hit, front);
+            assert_eq!(leaving.surface != Leaving::NOTHING.surface, front);
+            let ray = crate::shade::spawn_ray(p, patch.geometric_normal, dir, error_scale, 0.0);
+            // Every slot tested, the model too, skipping only the triangle left.
+            let mut brute = None;
+            let mut limit = f64::INFINITY;
+            for slot in 0..world.objects.len() {
+                let skip = leaving.prim_in(slot);
+                let bound = tie_bound(brute.is_some(), limit);
+                if let Some(h) = world.hit_object::<false>(slot, &ray, 0.0, bound, skip, &mut None)
+                {
+                    keep_nearer(&mut brute, &mut limit, slot, h);
+                }
+            }
+            let found = world.intersect_leaving(&ray, 0.0, f64::INFINITY, leaving);
+            assert_eq!(
+                found.map(|h| (h.t.to_bits(), h.object, h.prim)),
+                brute.map(|h| (h.t.to_bits(), h.object, h.prim)),
+                "ray from {p} along {dir}"
+            );
+            assert_eq!(
+                world.occluded_leaving(&ray, 50.0, leaving),
+                brute.is_some_and(|h| h.t < 50.0)
+            );
+            outward += front as usize;
+            inward += !front as usize;
+            floor_hits += found.is_some() as usize;
+        }
+        assert!(
+            outward > 500 && inward > 500 && floor_hits > 300,
+            "{outward} {inward} {floor_hits}"
         );
     }
 
