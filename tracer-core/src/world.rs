@@ -3292,16 +3292,9 @@ mod tests {
             mesh: 0,
             material: 0,
         };
-        let floor = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| WorldTriangle {
-            positions: [a, b, c].map(|[x, z]| DVec3::new(x, 0.0, z)),
-            normals: [DVec3::Y; 3],
-            tex_coords: [DVec2::ZERO; 3],
-            materials: [0; 3],
-        };
-        let (a, b, c, d) = ([-9.0, -9.0], [-9.0, 9.0], [9.0, 9.0], [9.0, -9.0]);
         let world = World::with_movers(
             vec![],
-            vec![floor(a, b, c), floor(c, d, a)],
+            square_floor(9.0),
             vec![mesh],
             vec![model],
             vec![],
@@ -3355,6 +3348,19 @@ mod tests {
             outward > 500 && inward > 500 && floor_hits > 300,
             "{outward} {inward} {floor_hits}"
         );
+    }
+
+    /// cube.scene's floor at `half` units: the square of side 2·`half` on y = 0, as two
+    /// triangles meeting on the diagonal x = z, normals up.
+    fn square_floor(half: f64) -> Vec<WorldTriangle> {
+        let floor = |corners: [[f64; 2]; 3]| WorldTriangle {
+            positions: corners.map(|[x, z]| DVec3::new(x * half, 0.0, z * half)),
+            normals: [DVec3::Y; 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let (a, b, c, d) = ([-1.0, -1.0], [-1.0, 1.0], [1.0, 1.0], [1.0, -1.0]);
+        vec![floor([a, b, c]), floor([c, d, a])]
     }
 
     /// A world of `mesh` alone, as one model at `position` turned by `tilt` about x.
@@ -3541,15 +3547,14 @@ mod tests {
         // cube.scene's floor and view: two triangles of 4,000 units meeting on a diagonal
         // under the camera. Each pixel's frustum lies beside one of them, except near the
         // diagonal, though neither lies behind one of its planes.
-        let floor = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| WorldTriangle {
-            positions: [a, b, c].map(|[x, z]| DVec3::new(x, 0.0, z)),
-            normals: [DVec3::Y; 3],
-            tex_coords: [DVec2::ZERO; 3],
-            materials: [0; 3],
-        };
-        let (a, b, c, d) = ([-2e3, -2e3], [-2e3, 2e3], [2e3, 2e3], [2e3, -2e3]);
-        let triangles = vec![floor(a, b, c), floor(c, d, a)];
-        let world = World::with_movers(vec![], triangles, vec![], vec![], vec![], (0.0, 0.0));
+        let world = World::with_movers(
+            vec![],
+            square_floor(2e3),
+            vec![],
+            vec![],
+            vec![],
+            (0.0, 0.0),
+        );
         let camera = crate::camera::Camera::from_orientation(
             DVec3::new(0.0, 6.0, 11.0),
             glam::DQuat::from_axis_angle(DVec3::X, -0.5),
