@@ -611,14 +611,9 @@ pub struct World {
     /// sphere or a mesh instance (skipped whole only by rays its mesh lies behind), or
     /// [`NO_SURFACE`].
     slot_surface: Vec<u32>,
-    /// Per surface (an index of `slot_surface`), where the slots a ray leaving it can meet
-    /// are few ([`LINEAR_TOP`] at most, none of them a mover): those slots, which such rays
-    /// test in turn instead of walking `top` (see [`World::traverse_top`]).
-    rest_of_surface: Vec<Option<Box<[u32]>>>,
-    /// Per surface, where the world is small ([`SURFACE_TOPS_UP_TO`] slots) and its other
-    /// slots are too many for `rest_of_surface`: a top level over those slots alone, which a
-    /// ray leaving the surface walks instead of `top` (see [`World::traverse_top`]).
-    top_without_surface: Vec<Option<SubTop>>,
+    /// Per surface (an index of `slot_surface`), what a ray leaving it tests instead of
+    /// walking `top` ([`OffSurface`], see [`World::traverse_top`]); None where it walks `top`.
+    off_surface: Vec<Option<OffSurface>>,
     /// Whether rays test every object in turn rather than walk `top`: a single object, or a
     /// few spheres and triangles ([`LINEAR_TOP`]).
     linear_top: bool,
@@ -713,15 +708,8 @@ impl World {
         let top = Bvh::build_costed(&bounds, mean_cost);
         let objects: Vec<Object> = top.order.iter().map(|&o| objects[o as usize]).collect();
         let slot_surface = surfaces(&objects, &triangles, &model_triangles);
-        let rest_of_surface = rest_of_surfaces(&objects, &slot_surface);
         let slot_bounds: Vec<Aabb> = top.order.iter().map(|&o| bounds[o as usize]).collect();
-        let top_without_surface = tops_without_surfaces(
-            &objects,
-            &slot_surface,
-            &rest_of_surface,
-            &slot_bounds,
-            mean_cost,
-        );
+        let off_surface = off_surfaces(&objects, &slot_surface, &slot_bounds, mean_cost);
         let top_level = TopLevel::new(&top);
         let triangle_normals = triangles
             .iter()
@@ -745,8 +733,7 @@ impl World {
             top,
             top_level,
             slot_surface,
-            rest_of_surface,
-            top_without_surface,
+            off_surface,
             linear_top,
             costly_top: costly > 0,
             model_bounds,
@@ -777,11 +764,10 @@ impl World {
     /// spheres and triangles: `linear_top`), and rays outside the f32 box test's range take
     /// the generic one.
     ///
-    /// A ray leaving a surface whose other slots are few (`rest_of_surface`) tests just those,
-    /// a mesh instance only where the ray may enter its box: the surface's own slots, which
-    /// `test` would skip, hold the ray's origin, so the walk would enter their boxes for
-    /// nothing (a shadow ray off cube.scene's floor walked both floor triangles' leaves to
-    /// reach the cube's).
+    /// A ray leaving a surface takes what `off_surface` has for it: the surface's own slots,
+    /// which `test` would skip, hold the ray's origin, so the walk would enter their boxes
+    /// for nothing (a shadow ray off cube.scene's floor walked both floor triangles' leaves
+    /// to reach the cube's).
     #[inline(always)]
     fn traverse_top<const ANY: bool>(
         &self,
@@ -790,30 +776,22 @@ impl World {
         leaving: Leaving,
         mut test: impl FnMut(usize, &mut f64) -> bool,
     ) -> bool {
-        if let Some(Some(rest)) = self.rest_of_surface.get(leaving.surface as usize) {
-            for &slot in rest.iter() {
-                let slot = slot as usize;
-                if let Object::Model(i) = self.objects[slot] {
-                    if !may_enter(&self.model_bounds[i as usize], ray, 0.0, *t_max) {
-                        continue;
-                    }
-                }
-                if test(slot, t_max) {
-                    return true;
-                }
+        match self.off_surface.get(leaving.surface as usize) {
+            Some(Some(OffSurface::Listed(rest))) => {
+                return self.test_in_turn(rest, ray, t_max, test);
             }
-            return false;
-        }
-        if let Some(Some(sub)) = self.top_without_surface.get(leaving.surface as usize) {
-            let leaf = |positions: std::ops::Range<usize>, t_max: &mut f64| {
-                for &slot in &sub.slots[positions] {
-                    if test(slot as usize, t_max) {
-                        return true;
+            Some(Some(OffSurface::Walked(sub))) => {
+                let leaf = |positions: std::ops::Range<usize>, t_max: &mut f64| {
+                    for &slot in &sub.slots[positions] {
+                        if test(slot as usize, t_max) {
+                            return true;
+                        }
                     }
-                }
-                false
-            };
-            return walk_top::<ANY>(&sub.bvh, &sub.level, sub.costly, ray, t_max, leaf);
+                    false
+                };
+                return walk_top::<ANY>(&sub.bvh, &sub.level, sub.costly, ray, t_max, leaf);
+            }
+            _ => {}
         }
         let mut leaf = |slots: std::ops::Range<usize>, t_max: &mut f64| {
             for slot in slots {
@@ -834,6 +812,30 @@ impl World {
             t_max,
             leaf,
         )
+    }
+
+    /// `test` on each of `slots` in turn, a mesh instance only where the ray may enter its
+    /// box, until it returns true.
+    #[inline(always)]
+    fn test_in_turn(
+        &self,
+        slots: &[u32],
+        ray: &Ray,
+        t_max: &mut f64,
+        mut test: impl FnMut(usize, &mut f64) -> bool,
+    ) -> bool {
+        for &slot in slots {
+            let slot = slot as usize;
+            if let Object::Model(i) = self.objects[slot] {
+                if !may_enter(&self.model_bounds[i as usize], ray, 0.0, *t_max) {
+                    continue;
+                }
+            }
+            if test(slot, t_max) {
+                return true;
+            }
+        }
+        false
     }
 
     /// The nearest hit with t in (t_min, t_max); `ray.dir` need not be unit length.
@@ -1835,7 +1837,18 @@ fn walk_top<const ANY: bool>(
     }
 }
 
-/// The top level over the slots off one surface ([`World::top_without_surface`]).
+/// What a ray leaving one surface tests instead of walking the world's top level.
+#[derive(Clone, Debug)]
+enum OffSurface {
+    /// The slots off the surface, at most [`LINEAR_TOP`]: tested in turn (a mesh instance
+    /// behind its box), which costs less than a walk.
+    Listed(Box<[u32]>),
+    /// A top level over the slots off the surface, in a world of at most
+    /// [`SURFACE_TOPS_UP_TO`] slots.
+    Walked(Box<SubTop>),
+}
+
+/// The top level over the slots off one surface ([`OffSurface::Walked`]).
 #[derive(Clone, Debug)]
 struct SubTop {
     bvh: Bvh,
@@ -1850,50 +1863,22 @@ struct SubTop {
 /// few dozen small trees, built in microseconds each.
 const SURFACE_TOPS_UP_TO: usize = 64;
 
-/// Per surface index of `slot_surface`, a top level over the slots off it, for small worlds
-/// of no movers where `rest_of_surface` has no list; built as `top` is (`mean_cost`, the
-/// slots' boxes `slot_bounds`).
-fn tops_without_surfaces(
+/// Per surface index of `slot_surface` (see [`surfaces`]), what a ray leaving it tests
+/// ([`OffSurface`]); None in a world with movers (whose boxes the rays' times decide) and
+/// where a large world's surface has more than [`LINEAR_TOP`] slots off it. The top levels
+/// are built as the world's is (`mean_cost`, the slots' boxes `slot_bounds`).
+fn off_surfaces(
     objects: &[Object],
     slot_surface: &[u32],
-    rest_of_surface: &[Option<Box<[u32]>>],
     slot_bounds: &[Aabb],
     mean_cost: f64,
-) -> Vec<Option<SubTop>> {
-    if objects.len() > SURFACE_TOPS_UP_TO || objects.iter().any(|o| matches!(o, Object::Mover(_))) {
+) -> Vec<Option<OffSurface>> {
+    if objects.iter().any(|o| matches!(o, Object::Mover(_))) {
         return Vec::new();
     }
-    (0..rest_of_surface.len())
-        .map(|surface| {
-            if rest_of_surface[surface].is_some() {
-                return None;
-            }
-            let off: Vec<u32> = (0..objects.len() as u32)
-                .filter(|&slot| slot_surface[slot as usize] != surface as u32)
-                .collect();
-            let bounds: Vec<Aabb> = off.iter().map(|&slot| slot_bounds[slot as usize]).collect();
-            let bvh = Bvh::build_costed(&bounds, mean_cost);
-            let slots = bvh.order.iter().map(|&i| off[i as usize]).collect();
-            Some(SubTop {
-                level: TopLevel::new(&bvh),
-                costly: off
-                    .iter()
-                    .any(|&slot| matches!(objects[slot as usize], Object::Model(_))),
-                bvh,
-                slots,
-            })
-        })
-        .collect()
-}
-
-/// Per surface index of `slot_surface` (see [`surfaces`]), the slots not on that surface,
-/// where they are at most [`LINEAR_TOP`] and none is a mover (whose box the rays' times
-/// decide); None elsewhere. With so few left, testing them in turn (a mesh instance behind
-/// its box) costs less than the walk, which would also enter the boxes of the surface's own
-/// slots: they hold the origin of every ray leaving it.
-fn rest_of_surfaces(objects: &[Object], slot_surface: &[u32]) -> Vec<Option<Box<[u32]>>> {
     // Slots per surface counted in one pass: a world of many triangles has as many surfaces,
-    // and counting each surface's slots over all of them was quadratic.
+    // and counting each surface's slots over all of them would be quadratic. (At most one
+    // surface holds more than half the slots, so a large world makes at most one list.)
     let mut on = Vec::new();
     for &surface in slot_surface.iter().filter(|&&s| s != NO_SURFACE) {
         if on.len() <= surface as usize {
@@ -1901,18 +1886,29 @@ fn rest_of_surfaces(objects: &[Object], slot_surface: &[u32]) -> Vec<Option<Box<
         }
         on[surface as usize] += 1;
     }
-    let movers = objects.iter().any(|o| matches!(o, Object::Mover(_)));
     on.iter()
         .enumerate()
         .map(|(surface, &count)| {
-            // At most one surface holds more than half the slots, so only one list is made
-            // in a world of more than 2 * LINEAR_TOP slots.
-            if movers || objects.len() - count > LINEAR_TOP {
+            let others = objects.len() - count;
+            if others > LINEAR_TOP && objects.len() > SURFACE_TOPS_UP_TO {
                 return None;
             }
-            let rest = (0..objects.len() as u32)
-                .filter(|&slot| slot_surface[slot as usize] != surface as u32);
-            Some(rest.collect())
+            let off: Box<[u32]> = (0..objects.len() as u32)
+                .filter(|&slot| slot_surface[slot as usize] != surface as u32)
+                .collect();
+            if others <= LINEAR_TOP {
+                return Some(OffSurface::Listed(off));
+            }
+            let bounds: Vec<Aabb> = off.iter().map(|&slot| slot_bounds[slot as usize]).collect();
+            let bvh = Bvh::build_costed(&bounds, mean_cost);
+            Some(OffSurface::Walked(Box::new(SubTop {
+                level: TopLevel::new(&bvh),
+                slots: bvh.order.iter().map(|&i| off[i as usize]).collect(),
+                costly: off
+                    .iter()
+                    .any(|&slot| matches!(objects[slot as usize], Object::Model(_))),
+                bvh,
+            })))
         })
         .collect()
 }
@@ -3178,15 +3174,22 @@ mod tests {
         let up = world.leaving(&on_floor, true);
         let surface = up.surface as usize;
         let off_floor = 3 + extra_spheres;
-        if off_floor <= LINEAR_TOP {
-            assert_eq!(
-                world.rest_of_surface[surface].as_deref().map(<[u32]>::len),
-                Some(off_floor),
-                "the floor's rays test the slots off it in turn"
-            );
-        } else {
-            let sub = world.top_without_surface[surface].as_ref();
-            assert_eq!(sub.map(|sub| sub.slots.len()), Some(off_floor));
+        match &world.off_surface[surface] {
+            Some(OffSurface::Listed(rest)) => {
+                assert!(
+                    off_floor <= LINEAR_TOP,
+                    "the floor's rays test the slots off it in turn"
+                );
+                assert_eq!(rest.len(), off_floor);
+            }
+            Some(OffSurface::Walked(sub)) => {
+                assert!(
+                    off_floor > LINEAR_TOP,
+                    "the floor's rays walk the slots off it"
+                );
+                assert_eq!(sub.slots.len(), off_floor);
+            }
+            None => panic!("no slots off the floor kept"),
         }
         // Every slot off the floor, tested in slot order with no culling: what a ray leaving
         // the floor can meet, by definition.
