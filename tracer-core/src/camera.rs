@@ -205,15 +205,21 @@ impl<'a> EyeRays<'a> {
     /// widened by a twentieth of a pixel each way, far beyond the rounding of the rays'
     /// directions, so that no ray strays outside.
     pub fn pixel_frustum(&self, x: u32, y: u32) -> Option<(DVec3, [DVec3; 4])> {
+        self.span_frustum(x..x + 1, y)
+    }
+
+    /// [`EyeRays::pixel_frustum`] of the pixels `xs` of row `y` together: one frustum holding
+    /// each of theirs.
+    pub fn span_frustum(&self, xs: std::ops::Range<u32>, y: u32) -> Option<(DVec3, [DVec3; 4])> {
         if self.camera_moves || self.camera.aperture > 0.0 {
             return None;
         }
         const MARGIN: f64 = 0.05;
-        let (x, y) = (x as f64, y as f64);
+        let (x0, x1, y) = (xs.start as f64, xs.end as f64, y as f64);
         let planes = self.camera.frustum(
-            x - MARGIN,
+            x0 - MARGIN,
             y - MARGIN,
-            x + 1.0 + MARGIN,
+            x1 + MARGIN,
             y + 1.0 + MARGIN,
             self.width as f64,
             self.height as f64,

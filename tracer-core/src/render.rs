@@ -19,7 +19,7 @@ use crate::sampler::SampleOrder;
 use crate::scene::Scene;
 use crate::settings::{RenderSettings, SettingsError, TileRect};
 use crate::shade::{Eye, RayCounts, Tracer};
-use crate::world::{Hit, World};
+use crate::world::{BlockSlots, Hit, World};
 
 /// Largest recursion depth accepted; the ray budget bounds the work in any case.
 pub const MAX_DEPTH_LIMIT: u32 = 64;
@@ -292,6 +292,8 @@ impl<'a> Renderer<'a> {
             y: self.settings.height - 1 - row,
             order: Vec::new(),
             slots: Vec::new(),
+            block: None,
+            block_slots: BlockSlots::default(),
             eyes: Vec::new(),
             picks: Vec::new(),
             rays: Vec::new(),
@@ -328,6 +330,10 @@ struct RowShader<'r> {
     /// The top-level slots the current pixel's eye-ray frustum meets (see
     /// [`World::frustum_slots`]); kept for the row, so no allocation per pixel.
     slots: Vec<u32>,
+    /// The first column of the block of [`FRUSTUM_BLOCK`] pixels whose candidate slots
+    /// `block_slots` holds ([`World::block_candidates`]).
+    block: Option<u32>,
+    block_slots: BlockSlots,
     /// The eye samples of the current packet, and their (sample, stratum) pairs.
     eyes: Vec<EyeSample>,
     picks: Vec<(u32, u32)>,
@@ -364,7 +370,22 @@ impl RowShader<'_> {
             .start_pixel(pixel_frustum.filter(|_| self.renderer.mirror_slots));
         let frustum = match pixel_frustum {
             Some((origin, planes)) => {
-                self.world.frustum_slots(origin, &planes, &mut self.slots);
+                // The candidates of the block of pixels holding this one, found once for it.
+                let start = x - x % FRUSTUM_BLOCK;
+                if self.block != Some(start) {
+                    let end = (start + FRUSTUM_BLOCK).min(self.renderer.settings.width);
+                    if let Some((_, block_planes)) = eye.span_frustum(start..end, self.y) {
+                        self.world
+                            .block_candidates(origin, &block_planes, &mut self.block_slots);
+                        self.block = Some(start);
+                    }
+                }
+                self.world.frustum_slots_among(
+                    origin,
+                    &planes,
+                    &mut self.block_slots,
+                    &mut self.slots,
+                );
                 Some(&self.slots[..])
             }
             None => None,
@@ -508,6 +529,10 @@ impl RowShader<'_> {
         }
     }
 }
+
+/// Pixels of a row whose frustum slots are found among one block's candidates
+/// ([`World::frustum_slots_among`]): a block's walk and triangle tests then serve them all.
+const FRUSTUM_BLOCK: u32 = 16;
 
 /// Fewer eye rays than this per pixel are traced one at a time: a packet's set-up costs
 /// more than it shares among so few.

@@ -452,6 +452,18 @@ struct ModelTriangle {
     prim: u32,
 }
 
+/// A block of pixels' candidate slots ([`World::block_candidates`]), reused block after block.
+#[derive(Clone, Debug, Default)]
+pub struct BlockSlots {
+    slots: Vec<u32>,
+    /// Per slot, whether a pixel must test its frustum against it.
+    tested: Vec<bool>,
+    /// Per slot of a mesh instance, the mesh's triangle that last met a pixel's frustum
+    /// (`u32::MAX`: none yet), tried before the mesh's walk: the next pixel's frustum mostly
+    /// meets it too.
+    hints: Vec<u32>,
+}
+
 /// The surface a spawned ray leaves, and with it the objects it cannot meet (it starts nudged
 /// off the surface to the side it heads for):
 /// - off a triangle on an axis-aligned plane, every triangle on that plane (coplanarity is
@@ -904,13 +916,60 @@ impl World {
                 range
                     .filter(|&slot| {
                         !self.skips(slot, leaving)
-                            && self.may_meet_frustum(slot, origin, planes, &mut edges)
+                            && self.may_meet_frustum(slot, origin, planes, &mut edges, &mut 0)
                     })
                     .map(|s| s as u32),
             )
         });
         if self.costly_top && slots.len() > 1 {
             self.nearest_instances_first(origin, slots);
+        }
+    }
+
+    /// The top-level slots the frustum of a block of pixels (apex `origin`, inward normals
+    /// `planes`, enclosing each of its pixels' frustums) may hit, for
+    /// [`World::frustum_slots_among`]: found once for the block, they spare each pixel the
+    /// top-level walk, and a triangle whose cone from the apex holds the whole block's
+    /// frustum (a floor seen through a block) is kept for every pixel without a test.
+    pub fn block_candidates(&self, origin: DVec3, planes: &[DVec3; 4], out: &mut BlockSlots) {
+        self.frustum_slots(origin, planes, &mut out.slots);
+        let mut edges = None;
+        out.tested.clear();
+        out.tested.extend(out.slots.iter().map(|&slot| {
+            let corners = match self.objects[slot as usize] {
+                Object::Triangle(i) => &self.triangles[i as usize].positions,
+                Object::ModelTriangle(i) => &self.model_triangles[i as usize].corners,
+                _ => return true,
+            };
+            !triangle_holds_frustum(
+                corners,
+                origin,
+                edges.get_or_insert_with(|| frustum_edges(planes)),
+            )
+        }));
+        out.hints.clear();
+        out.hints.resize(out.slots.len(), u32::MAX);
+    }
+
+    /// [`World::frustum_slots`] of a pixel inside a block, from the block's
+    /// [`World::block_candidates`]: each candidate the pixel's frustum may meet, in the
+    /// block's order (already nearest instances first). It keeps every slot the pixel's eye
+    /// rays can hit (a slot the block's frustum leaves out lies outside each of its pixels'),
+    /// and [`World::intersect_among`] finds the same hit among any such slots.
+    pub fn frustum_slots_among(
+        &self,
+        origin: DVec3,
+        planes: &[DVec3; 4],
+        block: &mut BlockSlots,
+        slots: &mut Vec<u32>,
+    ) {
+        slots.clear();
+        let mut edges = None;
+        let candidates = block.slots.iter().zip(&block.tested).zip(&mut block.hints);
+        for ((&slot, &tested), hint) in candidates {
+            if !tested || self.may_meet_frustum(slot as usize, origin, planes, &mut edges, hint) {
+                slots.push(slot);
+            }
         }
     }
 
@@ -994,6 +1053,7 @@ impl World {
         origin: DVec3,
         planes: &[DVec3; 4],
         edges: &mut Option<[DVec3; 4]>,
+        hint: &mut u32,
     ) -> bool {
         let mut behind_one = |corners| {
             triangle_behind_a_plane(corners, origin, planes)
@@ -1027,7 +1087,19 @@ impl World {
                 let apex = model.transform.to_local.transform_point3(origin);
                 let local = planes.map(|n| m * n);
                 let mesh = &self.meshes[model.mesh as usize];
-                !mesh.bvh.nodes.is_empty() && mesh_meets_frustum(mesh, 0, apex, &local)
+                // A triangle no plane has wholly behind it is one the walk would stop at.
+                if (*hint as usize) < mesh.slots()
+                    && !triangle_behind_a_plane(&mesh.corners(*hint as usize), apex, &local)
+                {
+                    return true;
+                }
+                let met = (!mesh.bvh.nodes.is_empty())
+                    .then(|| mesh_meets_frustum(mesh, 0, apex, &local))
+                    .flatten();
+                if let Some(slot) = met {
+                    *hint = slot;
+                }
+                met.is_some()
             }
             Object::Mover(_) => true,
         }
@@ -1913,20 +1985,21 @@ fn off_surfaces(
         .collect()
 }
 
-/// Whether some triangle below node `index` of `mesh`'s BVH may lie inside the frustum of
-/// `planes` (inward normals, through `apex`): a box or triangle wholly behind one plane is
+/// A triangle below node `index` of `mesh`'s BVH that may lie inside the frustum of `planes`
+/// (inward normals, through `apex`), if any: a box or triangle wholly behind one plane is
 /// left out. Stops at the first triangle that is not.
-fn mesh_meets_frustum(mesh: &Mesh, index: usize, apex: DVec3, planes: &[DVec3; 4]) -> bool {
+fn mesh_meets_frustum(mesh: &Mesh, index: usize, apex: DVec3, planes: &[DVec3; 4]) -> Option<u32> {
     let node = &mesh.bvh.nodes[index];
-    (0..node.index.len()).any(|c| {
+    (0..node.index.len()).find_map(|c| {
         if node.index[c] == u32::MAX || box_behind_a_plane(&node.bounds, c, apex, planes) {
-            return false;
+            return None;
         }
         let first = node.index[c] as usize;
         match node.count[c] {
             0 => mesh_meets_frustum(mesh, first, apex, planes),
             count => (first..first + count as usize)
-                .any(|slot| !triangle_behind_a_plane(&mesh.corners(slot), apex, planes)),
+                .find(|&slot| !triangle_behind_a_plane(&mesh.corners(slot), apex, planes))
+                .map(|slot| slot as u32),
         }
     })
 }
@@ -1975,6 +2048,19 @@ fn triangle_beside_a_frustum(corners: &[DVec3; 3], apex: DVec3, edges: &[DVec3; 
         let normal = v[i].cross(v[(i + 1) % 3]);
         let third = normal.dot(v[(i + 2) % 3]);
         third != 0.0 && edges.iter().all(|&d| normal.dot(d) * third < 0.0)
+    })
+}
+
+/// Whether the cone from `apex` through the triangle with `corners` holds the whole frustum
+/// with edge directions `edges`: every edge direction lies strictly inside the plane through
+/// the apex and each side (on the third corner's side). Then every ray of the frustum passes
+/// through the triangle's cone, and a test of the frustum against the triangle would keep it.
+fn triangle_holds_frustum(corners: &[DVec3; 3], apex: DVec3, edges: &[DVec3; 4]) -> bool {
+    let v = corners.map(|c| c - apex);
+    (0..3).all(|i| {
+        let normal = v[i].cross(v[(i + 1) % 3]);
+        let third = normal.dot(v[(i + 2) % 3]);
+        third != 0.0 && edges.iter().all(|&d| normal.dot(d) * third > 0.0)
     })
 }
 
@@ -2474,6 +2560,89 @@ mod tests {
             kept * 5 < boxes_met * 4,
             "{kept} slots kept of {boxes_met} boxes met"
         );
+    }
+
+    #[test]
+    fn a_triangle_holds_a_frustum_only_where_its_cone_takes_in_every_edge() {
+        use crate::camera::Camera;
+        // A camera at the origin looking down −z; a block of 8 pixels in the middle of a
+        // 64×48 image.
+        let camera = Camera::from_orientation(
+            DVec3::ZERO,
+            glam::DQuat::IDENTITY,
+            0.9,
+            0.01,
+            100.0,
+            4.0 / 3.0,
+        );
+        let planes = camera.frustum(27.95, 23.95, 36.05, 25.05, 64.0, 48.0);
+        let edges = frustum_edges(&planes);
+        let big = |z: f64| {
+            [
+                DVec3::new(-9.0, -9.0, z),
+                DVec3::new(9.0, -9.0, z),
+                DVec3::new(0.0, 9.0, z),
+            ]
+        };
+        assert!(triangle_holds_frustum(&big(-5.0), DVec3::ZERO, &edges));
+        // Behind the apex, the cone through the triangle points the other way.
+        assert!(!triangle_holds_frustum(&big(5.0), DVec3::ZERO, &edges));
+        // A side through the frustum: some of its rays pass beside the triangle.
+        let half = [
+            DVec3::new(0.0, -9.0, -5.0),
+            DVec3::new(9.0, -9.0, -5.0),
+            DVec3::new(0.0, 9.0, -5.0),
+        ];
+        assert!(!triangle_holds_frustum(&half, DVec3::ZERO, &edges));
+        // Wholly beside it.
+        let beside = [
+            DVec3::new(1.0, -9.0, -5.0),
+            DVec3::new(9.0, -9.0, -5.0),
+            DVec3::new(1.0, 9.0, -5.0),
+        ];
+        assert!(!triangle_holds_frustum(&beside, DVec3::ZERO, &edges));
+        assert!(triangle_beside_a_frustum(&beside, DVec3::ZERO, &edges));
+        // The apex in the triangle's plane.
+        let edge_on = [
+            DVec3::new(-9.0, 0.0, -5.0),
+            DVec3::new(9.0, 0.0, -5.0),
+            DVec3::new(0.0, 0.0, 5.0),
+        ];
+        assert!(!triangle_holds_frustum(&edge_on, DVec3::ZERO, &edges));
+
+        // In a world, a block inside the big triangle keeps it for every pixel untested, and
+        // the half triangle is tested per pixel.
+        let triangle = |positions| WorldTriangle {
+            positions,
+            normals: [DVec3::Z; 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let world = World::with_movers(
+            vec![],
+            vec![triangle(big(-5.0)), triangle(half)],
+            vec![],
+            vec![],
+            vec![],
+            (0.0, 0.0),
+        );
+        let mut block = BlockSlots::default();
+        world.block_candidates(DVec3::ZERO, &planes, &mut block);
+        assert_eq!(block.slots.len(), 2);
+        let tested: Vec<(u32, bool)> = block
+            .slots
+            .iter()
+            .copied()
+            .zip(block.tested.iter().copied())
+            .collect();
+        let big_slot = world
+            .objects
+            .iter()
+            .position(|o| matches!(o, Object::Triangle(0)))
+            .unwrap();
+        for (slot, tested) in tested {
+            assert_eq!(tested, slot as usize != big_slot, "slot {slot}");
+        }
     }
 
     /// Points of the floor y = corner.y walked in rows of `columns`, as a row of pixels
@@ -3415,13 +3584,22 @@ mod tests {
         (near, far): (f64, f64),
         next: &mut impl FnMut() -> f64,
     ) -> (u32, usize, usize) {
-        let mut slots = Vec::new();
+        let (mut slots, mut among_block) = (Vec::new(), Vec::new());
+        let mut block = BlockSlots::default();
         let (mut hits, mut kept, mut boxes_met) = (0, 0, 0);
         for y in 0..h {
             for x in 0..w {
+                // Blocks of 8 pixels, as the renderer's.
+                if x % 8 == 0 {
+                    let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
+                    let x1 = (x + 8).min(w) as f64 + 0.05;
+                    let planes = camera.frustum(x0, y0, x1, y0 + 1.1, w as f64, h as f64);
+                    world.block_candidates(camera.position, &planes, &mut block);
+                }
                 let (x0, y0) = (x as f64 - 0.05, y as f64 - 0.05);
                 let planes = camera.frustum(x0, y0, x0 + 1.1, y0 + 1.1, w as f64, h as f64);
                 world.frustum_slots(camera.position, &planes, &mut slots);
+                world.frustum_slots_among(camera.position, &planes, &mut block, &mut among_block);
                 kept += slots.len();
                 if world.costly_top {
                     // Instances nearest first, after every other object.
@@ -3451,6 +3629,11 @@ mod tests {
                     assert!(
                         same_hit(full, among),
                         "pixel ({x}, {y}), sample {k}: {full:?} against {among:?}"
+                    );
+                    let among = world.intersect_among(&ray, near, far, &among_block);
+                    assert!(
+                        same_hit(full, among),
+                        "pixel ({x}, {y}), sample {k}, block's candidates: {full:?} against {among:?}"
                     );
                     hits += full.is_some() as u32;
                 }
