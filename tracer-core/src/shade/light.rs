@@ -6,7 +6,7 @@ use glam::DVec3;
 use super::material::Surface;
 use super::optics::spawn_ray;
 use crate::sampler::{uniform_sphere, Rng};
-use crate::world::{Leaving, ShadowCache, World};
+use crate::world::{Hit, ShadowCache, World};
 
 #[derive(Clone, Debug)]
 pub struct Light {
@@ -51,8 +51,8 @@ impl Light {
     /// shading normal `n` (the caller multiplies by the material's diffuse colour), toward a
     /// point it draws from `rng` ([`Light::sample_point`]), and whether a shadow ray was
     /// traced for it (at `time`). `shadow` serves this light's shadow rays (see
-    /// [`World::occluded_by`]); `leaving`: what a ray leaves into the surface and out of it
-    /// (see [`World::leaving`]).
+    /// [`World::occluded_by`]); `hit` is the surface's, for what the shadow ray leaves (see
+    /// [`World::leaving`]).
     #[allow(clippy::too_many_arguments)]
     pub fn direct(
         &self,
@@ -63,12 +63,12 @@ impl Light {
         time: f64,
         rng: &mut Rng,
         shadow: &mut ShadowCache,
-        leaving: [Leaving; 2],
+        hit: &Hit,
     ) -> (DVec3, bool) {
         // Drawn here rather than passed in: a point passed in comes through memory, which a
         // point light's position (no draws) need not wait on (spheres.scene 1.03).
         let aim = Aim::new(self.sample_point(rng), s.position);
-        self.term(aim, world, s, n, error_scale, time, shadow, leaving)
+        self.term(aim, world, s, n, error_scale, time, shadow, hit)
     }
 
     /// [`Light::direct`] along `aim`, which the caller made from a point it drew
@@ -83,9 +83,9 @@ impl Light {
         error_scale: f64,
         time: f64,
         shadow: &mut ShadowCache,
-        leaving: [Leaving; 2],
+        hit: &Hit,
     ) -> (DVec3, bool) {
-        self.term(aim, world, s, n, error_scale, time, shadow, leaving)
+        self.term(aim, world, s, n, error_scale, time, shadow, hit)
     }
 
     /// The body of [`Light::direct`] and [`Light::direct_along`], inlined into each. Both
@@ -103,7 +103,7 @@ impl Light {
         error_scale: f64,
         time: f64,
         shadow: &mut ShadowCache,
-        leaving: [Leaving; 2],
+        hit: &Hit,
     ) -> (DVec3, bool) {
         let Aim {
             target,
@@ -120,7 +120,7 @@ impl Light {
         let p = s.position;
         let shadow_ray = spawn_ray(p, s.geometric_normal, l, error_scale, time);
         let shadow_length = (target - shadow_ray.origin).dot(l);
-        let leaving = leaving[(l.dot(s.geometric_normal) > 0.0) as usize];
+        let leaving = world.leaving(hit, l.dot(s.geometric_normal) > 0.0);
         if world.occluded_by(&shadow_ray, shadow_length, shadow, leaving) {
             return (DVec3::ZERO, true);
         }

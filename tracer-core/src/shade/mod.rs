@@ -278,9 +278,10 @@ impl<'a> Tracer<'a> {
             _ => None,
         };
         let s = stage.surface(ray, hit);
-        // What a ray spawned here leaves, by the side it heads to: [into, out of] the surface.
-        let leaving = [false, true].map(|outward| stage.world.leaving(hit, outward));
-        let leaving_toward = |dir: DVec3| leaving[(dir.dot(s.geometric_normal) > 0.0) as usize];
+        // What a ray spawned here leaves, by the side it heads to (found for each ray: both
+        // sides' found up front were stored narrow and copied wide, which stalled).
+        let leaving_toward =
+            |dir: DVec3| stage.world.leaving(hit, dir.dot(s.geometric_normal) > 0.0);
         let error_scale = position.abs().max_element() + hit.t;
         // A ray spawned at the last level would see black (`Tracer::trace`), so none is made
         // there; the glossy draw of a reflection still is, so that the sample's later draws
@@ -315,9 +316,9 @@ impl<'a> Tracer<'a> {
                     };
                     let (light, traced) = match early {
                         Some(aim) => {
-                            light.direct_along(aim, world, &s, n, error_scale, time, cache, leaving)
+                            light.direct_along(aim, world, &s, n, error_scale, time, cache, hit)
                         }
-                        None => light.direct(world, &s, n, error_scale, time, rng, cache, leaving),
+                        None => light.direct(world, &s, n, error_scale, time, rng, cache, hit),
                     };
                     self.counts.shadow += traced as u32;
                     direct += light * s.diffuse;
