@@ -266,12 +266,7 @@ impl<'a> EyeRays<'a> {
         let (jx, jy) = if self.spp == 1 {
             (0.5, 0.5)
         } else {
-            let (cols, rows) = self.strata;
-            let (cx, cy) = (stratum % cols, stratum / cols);
-            (
-                (cx as f64 + rng.next_f64()) / cols as f64,
-                (cy as f64 + rng.next_f64()) / rows as f64,
-            )
+            jitter(self.strata, stratum, &mut rng)
         };
         // Effects draw from their own streams, so the numbers above stay the course's.
         let time = if self.sample_time {
@@ -326,15 +321,12 @@ impl EyeRays<'_> {
         const LANES: usize = 8;
         let c = &self.camera;
         let (w, h) = (self.width as f64, self.height as f64);
-        let (cols, rows) = self.strata;
         for chunk in picks.chunks(LANES) {
             let mut rngs = [const { Rng::from_state(0) }; LANES];
             let (mut px, mut py) = ([0.0; LANES], [0.0; LANES]);
             for (k, &(sample, stratum)) in chunk.iter().enumerate() {
                 let mut rng = Rng::for_sample(self.seed, x, y, sample);
-                let (cx, cy) = (stratum % cols, stratum / cols);
-                let jx = (cx as f64 + rng.next_f64()) / cols as f64;
-                let jy = (cy as f64 + rng.next_f64()) / rows as f64;
+                let (jx, jy) = jitter(self.strata, stratum, &mut rng);
                 px[k] = x as f64 + jx;
                 py[k] = y as f64 + jy;
                 rngs[k] = rng;
@@ -382,6 +374,29 @@ impl EyeRays<'_> {
     }
 }
 
+/// A point of stratum `stratum` of a pixel's grid of `cols` × `rows` strata, drawn from `rng`, in
+/// [0, 1)²: (column + u) / columns, (row + v) / rows. Where the grid's sides are powers
+/// of two (4 × 4 for 16 spp), the divisions are multiplications by the exact
+/// reciprocals, which give the same bits, and the stratum's column and row are masks and
+/// shifts: the two divisions were on each eye ray's chain of latencies.
+#[inline(always)]
+fn jitter((cols, rows): (u32, u32), stratum: u32, rng: &mut Rng) -> (f64, f64) {
+    if cols.is_power_of_two() && rows.is_power_of_two() {
+        let (cx, cy) = (stratum & (cols - 1), stratum >> cols.trailing_zeros());
+        let (u, v) = (rng.next_f64(), rng.next_f64());
+        (
+            (cx as f64 + u) * (1.0 / cols as f64),
+            (cy as f64 + v) * (1.0 / rows as f64),
+        )
+    } else {
+        let (cx, cy) = (stratum % cols, stratum / cols);
+        (
+            (cx as f64 + rng.next_f64()) / cols as f64,
+            (cy as f64 + rng.next_f64()) / rows as f64,
+        )
+    }
+}
+
 /// A thin-lens eye ray through image point (px, py) of a `w`×`h` image, its lens point drawn
 /// from the lens stream of pixel (x, y)'s sample `sample`.
 #[cold]
@@ -418,6 +433,25 @@ fn camera_at(desc: &CameraDesc, origin: DVec3, width: u32, height: u32, time: f6
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn jitter_in_grids_of_powers_of_two_gives_the_divisions_bits() {
+        for grid in [(1, 1), (2, 1), (2, 2), (4, 2), (4, 4), (8, 8), (16, 8)] {
+            let (cols, rows) = grid;
+            for stratum in 0..cols * rows {
+                for sample in 0..50 {
+                    let mut rng = Rng::for_sample(7, 3, 5, sample);
+                    let mut reference = rng.clone();
+                    let (jx, jy) = jitter(grid, stratum, &mut rng);
+                    let (cx, cy) = (stratum % cols, stratum / cols);
+                    let ex = (cx as f64 + reference.next_f64()) / cols as f64;
+                    let ey = (cy as f64 + reference.next_f64()) / rows as f64;
+                    assert_eq!((jx.to_bits(), jy.to_bits()), (ex.to_bits(), ey.to_bits()));
+                    assert_eq!(rng.next_u64(), reference.next_u64());
+                }
+            }
+        }
+    }
 
     #[test]
     fn centre_ray_looks_down_minus_z_and_corners_follow_fov() {
