@@ -2492,9 +2492,20 @@ mod tests {
         assert!(bounds.extent().max_element() < 10.0, "{bounds:?}");
     }
 
+    /// A camera at the origin looking down −z (fov 0.9, 4:3, clipped to [0.01, 100]).
+    fn looking_down_z() -> crate::camera::Camera {
+        crate::camera::Camera::from_orientation(
+            DVec3::ZERO,
+            glam::DQuat::IDENTITY,
+            0.9,
+            0.01,
+            100.0,
+            4.0 / 3.0,
+        )
+    }
+
     #[test]
     fn a_pixels_frustum_slots_give_its_eye_rays_the_same_hits() {
-        use crate::camera::Camera;
         let mut next = crate::test_rng::uniform(5);
         // Spheres, rotated and stretched ellipsoids and triangles scattered in front of a camera
         // at the origin looking down −z.
@@ -2540,14 +2551,7 @@ mod tests {
             .collect();
         let world = World::with_movers(spheres, triangles, vec![], vec![], vec![], (0.0, 0.0));
         let (w, h) = (64u32, 48u32);
-        let camera = Camera::from_orientation(
-            DVec3::ZERO,
-            glam::DQuat::IDENTITY,
-            0.9,
-            0.01,
-            100.0,
-            4.0 / 3.0,
-        );
+        let camera = looking_down_z();
         let (hits, kept, boxes_met) =
             check_frustum_slots(&world, &camera, (w, h), (0.01, 100.0), &mut next);
         let culled = (w * h) as usize * world.objects.len() - kept;
@@ -2564,17 +2568,9 @@ mod tests {
 
     #[test]
     fn a_triangle_holds_a_frustum_only_where_its_cone_takes_in_every_edge() {
-        use crate::camera::Camera;
         // A camera at the origin looking down −z; a block of 8 pixels in the middle of a
         // 64×48 image.
-        let camera = Camera::from_orientation(
-            DVec3::ZERO,
-            glam::DQuat::IDENTITY,
-            0.9,
-            0.01,
-            100.0,
-            4.0 / 3.0,
-        );
+        let camera = looking_down_z();
         let planes = camera.frustum(27.95, 23.95, 36.05, 25.05, 64.0, 48.0);
         let edges = frustum_edges(&planes);
         let big = |z: f64| {
