@@ -2045,10 +2045,18 @@ fn frustum_edges(planes: &[DVec3; 4]) -> [DVec3; 4] {
 fn triangle_beside_a_frustum(corners: &[DVec3; 3], apex: DVec3, edges: &[DVec3; 4]) -> bool {
     let v = corners.map(|c| c - apex);
     (0..3).any(|i| {
-        let normal = v[i].cross(v[(i + 1) % 3]);
-        let third = normal.dot(v[(i + 2) % 3]);
+        let (normal, third) = side_plane(&v, i);
         third != 0.0 && edges.iter().all(|&d| normal.dot(d) * third < 0.0)
     })
+}
+
+/// The plane through the apex and side `i` (corners i and i + 1) of a triangle whose corners
+/// relative to the apex are `v`: its normal, and the third corner's product with it (0 where
+/// the apex lies in the triangle's plane).
+#[inline(always)]
+fn side_plane(v: &[DVec3; 3], i: usize) -> (DVec3, f64) {
+    let normal = v[i].cross(v[(i + 1) % 3]);
+    (normal, normal.dot(v[(i + 2) % 3]))
 }
 
 /// Whether the cone from `apex` through the triangle with `corners` holds the whole frustum
@@ -2058,8 +2066,7 @@ fn triangle_beside_a_frustum(corners: &[DVec3; 3], apex: DVec3, edges: &[DVec3; 
 fn triangle_holds_frustum(corners: &[DVec3; 3], apex: DVec3, edges: &[DVec3; 4]) -> bool {
     let v = corners.map(|c| c - apex);
     (0..3).all(|i| {
-        let normal = v[i].cross(v[(i + 1) % 3]);
-        let third = normal.dot(v[(i + 2) % 3]);
+        let (normal, third) = side_plane(&v, i);
         third != 0.0 && edges.iter().all(|&d| normal.dot(d) * third > 0.0)
     })
 }
