@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::accel::PACKET;
+use crate::accel::{Spread, PACKET};
 use crate::geometry::Ray;
 use crate::render::{RenderError, Renderer};
 use crate::sampler::{uniform_sphere, Rng};
@@ -252,7 +252,14 @@ fn trace_item(scene: &Scene, rays: &RaySets, measure: Measure, item: usize) -> u
                         len += 1;
                     }
                 }
-                world.intersect_packet(&packet[..len], rays.near, rays.far, None, &mut hits[..len]);
+                world.intersect_packet(
+                    &packet[..len],
+                    rays.near,
+                    rays.far,
+                    None,
+                    Spread::Wide,
+                    &mut hits[..len],
+                );
                 hit += hits[..len].iter().filter(|h| h.is_some()).count();
             }
             hit

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use glam::DVec3;
 use rayon::prelude::*;
 
-use crate::accel::PACKET;
+use crate::accel::{Spread, PACKET};
 use crate::adaptive::{in_second_half, luminance, SUMS};
 use crate::camera::{Camera, EyeRays, EyeSample};
 use crate::film::Image;
@@ -499,8 +499,14 @@ impl RowShader<'_> {
                 let hits = &mut self.hits[..];
                 let (near, far) = (self.eyes[0].near, self.eyes[0].far);
                 if self.eyes.iter().all(|e| e.near == near && e.far == far) {
-                    self.world
-                        .intersect_packet(&self.rays, near, far, Some(slots), hits);
+                    self.world.intersect_packet(
+                        &self.rays,
+                        near,
+                        far,
+                        Some(slots),
+                        Spread::Pixel,
+                        hits,
+                    );
                 } else {
                     for (h, e) in hits.iter_mut().zip(&self.eyes) {
                         *h = self.world.intersect_among(&e.ray, e.near, e.far, slots);

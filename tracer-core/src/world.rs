@@ -4,7 +4,7 @@
 
 use glam::{DMat3, DVec2, DVec3};
 
-use crate::accel::{with_capacity_huge, Bvh, Fetch, PacketBounds, PACKET, PADDING};
+use crate::accel::{with_capacity_huge, Bvh, Fetch, PacketBounds, Spread, PACKET, PADDING};
 
 mod top;
 use crate::geometry::{
@@ -1138,13 +1138,15 @@ impl World {
     /// share the work: a mesh's BVH is walked once for the packet (see
     /// [`Bvh::traverse_packet`]), and a packet that misses an object's box skips it. `slots`,
     /// when given, holds every top-level slot any of the rays can hit (as for
-    /// [`World::intersect_among`]).
+    /// [`World::intersect_among`]). `spread` says how far the rays part ([`Spread`]); it
+    /// changes the work, never the hits.
     pub fn intersect_packet(
         &self,
         rays: &[Ray],
         t_min: f64,
         t_max: f64,
         slots: Option<&[u32]>,
+        spread: Spread,
         hits: &mut [Option<Hit>],
     ) {
         let n = rays.len();
@@ -1154,7 +1156,7 @@ impl World {
         let limits = &mut limits[..n];
         let mut world_tri_rays = [None; PACKET];
         let mut visit = |slot: usize, limits: &mut [f64]| {
-            self.object_packet(slot, rays, t_min, limits, hits, &mut world_tri_rays)
+            self.object_packet(slot, rays, t_min, limits, spread, hits, &mut world_tri_rays)
         };
         // Every object takes a packet whatever its rays (a mesh's walk falls back to single
         // rays where the f32 tests cannot take them); the packet's world-space bounds are
@@ -1191,12 +1193,14 @@ impl World {
     /// The object in top-level slot `slot` against every ray of a packet, each ray's hit
     /// kept in `hits` where it is nearer (ties as in [`World::intersect`]); `limits` are the
     /// rays' current nearest distances.
+    #[allow(clippy::too_many_arguments)]
     fn object_packet(
         &self,
         slot: usize,
         rays: &[Ray],
         t_min: f64,
         limits: &mut [f64],
+        spread: Spread,
         hits: &mut [Option<Hit>],
         world_tri_rays: &mut [Option<TriangleRay>; PACKET],
     ) {
@@ -1263,8 +1267,12 @@ impl World {
             Fetch::Subtree => prefetch_blocks(&mesh.blocks, tris),
             Fetch::Leaf => {}
         };
-        mesh.bvh
-            .traverse_packet(local, &mut bounds[..live], fetch, |i, tris, t_max| {
+        mesh.bvh.traverse_packet(
+            local,
+            &mut bounds[..live],
+            spread,
+            fetch,
+            |i, tris, t_max| {
                 let (tri_ray, ray32) = tri_rays[i].get_or_insert_with(|| {
                     let tri_ray = TriangleRay::new(&local[i]);
                     (tri_ray, TriangleRayF32::new(&tri_ray))
@@ -1278,7 +1286,8 @@ impl World {
                     NO_PRIM,
                     &mut found[i],
                 );
-            });
+            },
+        );
         for (j, &i) in index[..live].iter().enumerate() {
             if let Some(h) = found[j] {
                 let i = i as usize;
@@ -3008,14 +3017,15 @@ mod tests {
             let rays: Vec<Ray> = (0..16)
                 .map(|_| camera.ray(next() * 64.0, next() * 48.0, 64.0, 48.0))
                 .collect();
-            let mut packets = [[None; 16]; 2];
-            for (world, found) in worlds.iter().zip(&mut packets) {
-                world.intersect_packet(&rays, 0.0, f64::INFINITY, None, found);
+            let mut packets = [[None; 16]; 4];
+            for (k, found) in packets.iter_mut().enumerate() {
+                let spread = [Spread::Wide, Spread::Pixel][k / 2];
+                worlds[k % 2].intersect_packet(&rays, 0.0, f64::INFINITY, None, spread, found);
             }
             for (k, ray) in rays.iter().enumerate() {
                 let [a, b] = [&worlds[0], &worlds[1]].map(|w| w.intersect(ray, 0.0, f64::INFINITY));
                 assert!(same_hit(a, b), "{a:?} against {b:?}");
-                assert!(same_hit(a, packets[0][k]) && same_hit(a, packets[1][k]));
+                assert!(packets.iter().all(|p| same_hit(a, p[k])));
                 let Some(hit) = a else { continue };
                 hits += 1;
                 // Toward a point behind the grid, from just off the hit: some are blocked.
@@ -3810,8 +3820,11 @@ mod tests {
                 };
                 let mut found = vec![None; n];
                 let mut among = vec![None; n];
-                world.intersect_packet(&rays, t_min, t_max, None, &mut found);
-                world.intersect_packet(&rays, t_min, t_max, Some(&all), &mut among);
+                // Eye rays of a block of pixels, taken as a wide packet and (what the renderer
+                // does only for one pixel's) as a pixel packet: the same hits either way.
+                let spread = [Spread::Wide, Spread::Pixel][k % 3 / 2];
+                world.intersect_packet(&rays, t_min, t_max, None, spread, &mut found);
+                world.intersect_packet(&rays, t_min, t_max, Some(&all), spread, &mut among);
                 for (i, ray) in rays.iter().enumerate() {
                     let single = world.intersect(ray, t_min, t_max);
                     assert!(
@@ -3835,7 +3848,7 @@ mod tests {
         }
         // An empty packet, and one no ray of which hits anything.
         let world = packet_world(1.0, DVec3::ZERO);
-        world.intersect_packet(&[], 0.0, f64::INFINITY, None, &mut []);
+        world.intersect_packet(&[], 0.0, f64::INFINITY, None, Spread::Wide, &mut []);
         let away: Vec<Ray> = (0..64)
             .map(|i| {
                 Ray::new(
@@ -3844,9 +3857,11 @@ mod tests {
                 )
             })
             .collect();
-        let mut found = vec![None; 64];
-        world.intersect_packet(&away, 0.0, f64::INFINITY, None, &mut found);
-        assert!(found.iter().all(Option::is_none));
+        for spread in [Spread::Wide, Spread::Pixel] {
+            let mut found = vec![None; 64];
+            world.intersect_packet(&away, 0.0, f64::INFINITY, None, spread, &mut found);
+            assert!(found.iter().all(Option::is_none));
+        }
     }
 
     #[test]
@@ -4174,10 +4189,12 @@ mod tests {
         }
         assert!(ties > 20, "{ties} rays with tied hits");
         for packet in rays.chunks(PACKET) {
-            let mut hits = vec![None; packet.len()];
-            world.intersect_packet(packet, 0.0, f64::INFINITY, None, &mut hits);
-            for (ray, hit) in packet.iter().zip(hits) {
-                assert!(same_hit(hit, world.intersect(ray, 0.0, f64::INFINITY)));
+            for spread in [Spread::Wide, Spread::Pixel] {
+                let mut hits = vec![None; packet.len()];
+                world.intersect_packet(packet, 0.0, f64::INFINITY, None, spread, &mut hits);
+                for (ray, hit) in packet.iter().zip(hits) {
+                    assert!(same_hit(hit, world.intersect(ray, 0.0, f64::INFINITY)));
+                }
             }
         }
     }

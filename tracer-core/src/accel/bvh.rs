@@ -3,7 +3,7 @@ use std::mem::MaybeUninit;
 use crate::geometry::{Aabb, Ray};
 
 mod packet;
-pub use packet::{PacketBounds, PACKET};
+pub use packet::{PacketBounds, Spread, PACKET};
 
 /// Children per node. Eight halve the depth of a four-wide tree, so a ray makes fewer
 /// dependent node loads (the latency that bounds incoherent rays); each visit tests its

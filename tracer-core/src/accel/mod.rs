@@ -8,5 +8,5 @@ mod memory;
 
 pub use build::PADDING;
 pub(crate) use bvh::{Bounds, RayF32};
-pub use bvh::{Bvh, Fetch, Node, PacketBounds, PACKET};
+pub use bvh::{Bvh, Fetch, Node, PacketBounds, Spread, PACKET};
 pub(crate) use memory::with_capacity_huge;
