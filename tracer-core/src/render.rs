@@ -374,18 +374,29 @@ impl RowShader<'_> {
                 let start = x - x % FRUSTUM_BLOCK;
                 if self.block != Some(start) {
                     let end = (start + FRUSTUM_BLOCK).min(self.renderer.settings.width);
-                    if let Some((_, block_planes)) = eye.span_frustum(start..end, self.y) {
-                        self.world
-                            .block_candidates(origin, &block_planes, &mut self.block_slots);
-                        self.block = Some(start);
-                    }
+                    self.block = eye
+                        .span_frustum(start..end, self.y)
+                        .map(|(_, block_planes)| {
+                            self.world.block_candidates(
+                                origin,
+                                &block_planes,
+                                &mut self.block_slots,
+                            );
+                            start
+                        });
                 }
-                self.world.frustum_slots_among(
-                    origin,
-                    &planes,
-                    &mut self.block_slots,
-                    &mut self.slots,
-                );
+                if self.block.is_some() {
+                    self.world.frustum_slots_among(
+                        origin,
+                        &planes,
+                        &mut self.block_slots,
+                        &mut self.slots,
+                    );
+                } else {
+                    // No frustum for the block (none arises where the pixel has one, but the
+                    // candidates must never be another block's): the pixel's own walk.
+                    self.world.frustum_slots(origin, &planes, &mut self.slots);
+                }
                 Some(&self.slots[..])
             }
             None => None,
