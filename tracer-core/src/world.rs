@@ -459,10 +459,14 @@ pub struct BlockSlots {
     /// Per slot, whether a pixel must test its frustum against it.
     tested: Vec<bool>,
     /// Per slot of a mesh instance, the mesh's triangle that last met a pixel's frustum
-    /// (`u32::MAX`: none yet), tried before the mesh's walk: the next pixel's frustum mostly
-    /// meets it too.
+    /// ([`NO_TRIANGLE_HINT`]: none yet), tried before the mesh's walk: the next pixel's
+    /// frustum mostly meets it too.
     hints: Vec<u32>,
 }
+
+/// A mesh-triangle hint of [`World::may_meet_frustum`] that names no triangle: the walk
+/// runs at once. (A hint of 0 would test triangle 0 first, for nothing.)
+const NO_TRIANGLE_HINT: u32 = u32::MAX;
 
 /// The surface a spawned ray leaves, and with it the objects it cannot meet (it starts nudged
 /// off the surface to the side it heads for):
@@ -915,8 +919,11 @@ impl World {
             slots.extend(
                 range
                     .filter(|&slot| {
+                        // A fresh hint per slot: one set by a mesh's walk names a triangle of
+                        // that mesh only.
+                        let mut no_hint = NO_TRIANGLE_HINT;
                         !self.skips(slot, leaving)
-                            && self.may_meet_frustum(slot, origin, planes, &mut edges, &mut 0)
+                            && self.may_meet_frustum(slot, origin, planes, &mut edges, &mut no_hint)
                     })
                     .map(|s| s as u32),
             )
@@ -948,7 +955,7 @@ impl World {
             )
         }));
         out.hints.clear();
-        out.hints.resize(out.slots.len(), u32::MAX);
+        out.hints.resize(out.slots.len(), NO_TRIANGLE_HINT);
     }
 
     /// [`World::frustum_slots`] of a pixel inside a block, from the block's
@@ -1046,7 +1053,8 @@ impl World {
     /// out where the plane through the apex and one of its sides has the whole frustum on
     /// the far side (its edge directions, made into `edges` when first needed): the planes
     /// alone keep a large triangle beside the frustum, such as the half of cube.scene's floor
-    /// a pixel does not see.
+    /// a pixel does not see. For a mesh instance, `hint` names a triangle to try before the
+    /// walk ([`NO_TRIANGLE_HINT`]: none) and is set to the one the walk stops at.
     fn may_meet_frustum(
         &self,
         slot: usize,
