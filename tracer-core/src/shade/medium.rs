@@ -14,6 +14,9 @@ pub struct MediumStack {
     indices: [f64; MAX_MEDIA],
     absorption: [DVec3; MAX_MEDIA],
     len: usize,
+    /// Whether the innermost medium absorbs: read for every ray, where the entry itself is
+    /// not (most scenes have no absorbing medium).
+    absorbs: bool,
 }
 
 impl MediumStack {
@@ -24,6 +27,7 @@ impl MediumStack {
             indices,
             absorption: [DVec3::ZERO; MAX_MEDIA],
             len: 1,
+            absorbs: false,
         }
     }
 
@@ -34,6 +38,12 @@ impl MediumStack {
     /// Absorption coefficients of the innermost medium (zero outside absorbing dielectrics).
     pub fn absorption(&self) -> DVec3 {
         self.absorption[self.len - 1]
+    }
+
+    /// Whether the innermost medium absorbs (its [`MediumStack::absorption`] is not zero).
+    #[inline(always)]
+    pub fn absorbs(&self) -> bool {
+        self.absorbs
     }
 
     /// How many media the stack holds, the outermost included.
@@ -52,6 +62,7 @@ impl MediumStack {
             self.indices[self.len] = ior;
             self.absorption[self.len] = absorption;
             self.len += 1;
+            self.absorbs = absorption != DVec3::ZERO;
         }
         self
     }
@@ -64,6 +75,7 @@ impl MediumStack {
             self.indices.copy_within(i + 1..self.len, i);
             self.absorption.copy_within(i + 1..self.len, i);
             self.len -= 1;
+            self.absorbs = self.absorption() != DVec3::ZERO;
         }
         self
     }
@@ -99,6 +111,11 @@ mod tests {
         let air = MediumStack::new(1.0);
         let tinted = air.entered_absorbing(1.5, sigma);
         assert_eq!(tinted.absorption(), sigma);
+        assert!(tinted.absorbs() && !air.absorbs());
+        assert!(!tinted.entered(1.33).absorbs());
+        assert!(tinted.entered(1.33).left(1.33).absorbs());
+        assert!(!tinted.entered(1.33).left(1.5).absorbs());
+        assert!(!tinted.left(1.5).absorbs());
         assert_eq!(tinted.entered(1.33).absorption(), DVec3::ZERO);
         assert_eq!(tinted.entered(1.33).left(1.33).absorption(), sigma);
         // Leaving the tinted glass from inside water that overlaps it keeps water's (none).

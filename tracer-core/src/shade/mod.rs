@@ -202,11 +202,12 @@ impl<'a> Tracer<'a> {
         eye: Eye,
         leaving: Leaving,
     ) -> DVec3 {
-        let absorption = media.absorption();
         let (color, distance) = self.trace(ray, t_min, t_max, level, media, rng, eye, leaving);
-        if absorption == DVec3::ZERO {
+        // Read after the trace: nothing about the medium is kept across it.
+        if !media.absorbs() {
             return color;
         }
+        let absorption = media.absorption();
         // Beer's law over the distance travelled inside the medium (an escaping ray
         // travels forever: exp(-σ·∞) = 0 wherever σ > 0).
         let transmittance = (-absorption * distance).exp();
@@ -250,7 +251,16 @@ impl<'a> Tracer<'a> {
         media: &MediumStack,
         rng: &mut Rng,
     ) -> DVec3 {
-        let stage = self.stage;
+        // The fields shading reads, each copied alone: a copy of the whole stage was made in
+        // memory at every hit (about 18 instructions), for the closures that borrowed it.
+        let Stage {
+            world,
+            lights,
+            ambient,
+            caustics,
+            lit_objects,
+            ..
+        } = self.stage;
         // At a hit on an object the lights shade, the first light's point is drawn before
         // the surface is made, from a copy of the stream: its draws and arithmetic then
         // overlap the surface's instead of waiting for it, and the stream takes the copy's
@@ -265,23 +275,20 @@ impl<'a> Tracer<'a> {
         // was 14-18% of this function's time).
         let position = ray.at(hit.t);
         let mut after_early = rng.clone();
-        let first_aim = stage
-            .lights
+        let first_aim = lights
             .first()
-            .filter(|light| light.radius > 0.0 && stage.lit_objects[hit.object() as usize])
+            .filter(|light| light.radius > 0.0 && lit_objects[hit.object() as usize])
             .map(|light| Aim::new(light.sample_point(&mut after_early), position));
         let second_aim = match first_aim {
-            Some(_) if self.second_soft => Some(Aim::new(
-                stage.lights[1].sample_point(&mut after_early),
-                position,
-            )),
+            Some(_) if self.second_soft => {
+                Some(Aim::new(lights[1].sample_point(&mut after_early), position))
+            }
             _ => None,
         };
-        let s = stage.surface(ray, hit);
+        let s = self.stage.surface(ray, hit);
         // What a ray spawned here leaves, by the side it heads to (found for each ray: both
         // sides' found up front were stored narrow and copied wide, which stalled).
-        let leaving_toward =
-            |dir: DVec3| stage.world.leaving(hit, dir.dot(s.geometric_normal) > 0.0);
+        let leaving_toward = |dir: DVec3| world.leaving(hit, dir.dot(s.geometric_normal) > 0.0);
         let error_scale = position.abs().max_element() + hit.t;
         // A ray spawned at the last level would see black (`Tracer::trace`), so none is made
         // there; the glossy draw of a reflection still is, so that the sample's later draws
@@ -292,7 +299,7 @@ impl<'a> Tracer<'a> {
         if s.ior == 0.0 {
             // Opaque: shade the side the ray sees (conventions §0.3).
             let n = toward_viewer(s.normal, d);
-            let mut direct = stage.ambient * s.ambient;
+            let mut direct = ambient * s.ambient;
             let shadow_level = (level as usize).min(SHADOW_LEVELS - 1);
             // A surface without a diffuse colour (a perfect mirror) takes nothing from the
             // lights or the caustics: each term is a finite value times zero. Its shadow rays
@@ -303,12 +310,12 @@ impl<'a> Tracer<'a> {
             *rng = after_early;
             if s.diffuse == DVec3::ZERO {
                 let drawn = first_aim.is_some() as usize + second_aim.is_some() as usize;
-                let rest = stage.lights.iter().skip(drawn);
+                let rest = lights.iter().skip(drawn);
                 rest.for_each(|light| light.skip_sample(rng));
             } else {
-                for (i, light) in stage.lights.iter().enumerate() {
+                for (i, light) in lights.iter().enumerate() {
                     let cache = &mut self.shadow[i * SHADOW_LEVELS + shadow_level];
-                    let (world, time) = (stage.world, ray.time);
+                    let time = ray.time;
                     let early = match i {
                         0 => first_aim,
                         1 => second_aim,
@@ -323,7 +330,7 @@ impl<'a> Tracer<'a> {
                     self.counts.shadow += traced as u32;
                     direct += light * s.diffuse;
                 }
-                if let Some(map) = stage.caustics {
+                if let Some(map) = caustics {
                     direct += map.irradiance(s.position, n) * s.diffuse;
                 }
             }
@@ -341,7 +348,7 @@ impl<'a> Tracer<'a> {
                 // mirror slots, made for the first such ray (taken out of `self` while the
                 // ray is traced; deeper levels never read them).
                 let plane = match self.mirrors.eye {
-                    Some(_) if level == 0 && s.glossiness == 0.0 => stage.world.mirror_plane(hit),
+                    Some(_) if level == 0 && s.glossiness == 0.0 => world.mirror_plane(hit),
                     _ => None,
                 };
                 let mut slots = Vec::new();
@@ -349,9 +356,7 @@ impl<'a> Tracer<'a> {
                     slots = std::mem::take(&mut self.mirrors.slots);
                     let key = Some((axis, c.to_bits(), leaving));
                     if self.mirrors.plane != key {
-                        stage
-                            .world
-                            .mirror_slots((axis, c), (*apex, planes), leaving, &mut slots);
+                        world.mirror_slots((axis, c), (*apex, planes), leaving, &mut slots);
                         self.mirrors.plane = key;
                     }
                 }
