@@ -7,6 +7,6 @@ mod bvh;
 mod memory;
 
 pub use build::PADDING;
-pub(crate) use bvh::{Bounds, RayF32};
+pub(crate) use bvh::{t_limit, Bounds, RayF32};
 pub use bvh::{Bvh, Fetch, Node, PacketBounds, Spread, PACKET};
 pub(crate) use memory::with_capacity_huge;

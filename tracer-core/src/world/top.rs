@@ -11,7 +11,7 @@
 
 use std::mem::MaybeUninit;
 
-use crate::accel::{Bounds, Bvh, Node, RayF32};
+use crate::accel::{t_limit, Bounds, Bvh, Node, RayF32};
 use crate::geometry::Ray;
 
 /// Children per top-level node.
@@ -81,19 +81,23 @@ impl TopLevel {
         let mut stack = [const { MaybeUninit::<(u32, f32)>::uninit() }; STACK_DEPTH];
         let mut top = 0;
         let mut index = 0usize;
+        // Entry distances are compared with `t_max`'s f32 bound, made again when a leaf
+        // shrinks it (as the mesh walk does, `Bvh::traverse_with`).
+        let mut limit = t_limit(*t_max);
         loop {
             let node = &self.nodes[index];
-            let (mask, dist) = r.hit_top(node, *t_max);
+            let (mask, dist) = r.hit_top(node, limit);
             let mut leaves = mask & node.leaves;
             let mut inner = mask & !leaves;
             while leaves != 0 {
                 let c = leaves.trailing_zeros() as usize % WIDTH;
                 leaves &= leaves - 1;
-                if dist[c] as f64 <= *t_max {
+                if dist[c] <= limit {
                     let first = node.index[c] as usize;
                     if leaf(first..first + node.count[c] as usize, t_max) {
                         return Some(true);
                     }
+                    limit = t_limit(*t_max);
                 }
             }
             if inner != 0 {
@@ -125,13 +129,13 @@ impl TopLevel {
                         top += 1;
                     }
                 }
-                if next.1 as f64 <= *t_max {
+                if next.1 <= limit {
                     index = next.0 as usize;
                     continue;
                 }
             }
             // Skip subtrees that a hit found since they were pushed has put out of reach.
-            match pop_within(&stack, &mut top, *t_max) {
+            match pop_within(&stack, &mut top, limit) {
                 Some(n) => index = n as usize,
                 None => return Some(false),
             }
@@ -140,14 +144,15 @@ impl TopLevel {
 }
 
 /// Pops the stack's entries (node or leaf key, entry distance) below `*top` until one lies
-/// within `t_max`, and returns its key; None when the stack runs out.
+/// within `limit` (a `t_max`'s [`t_limit`]), and returns its key; None when the stack runs
+/// out.
 #[inline(always)]
-fn pop_within(stack: &[MaybeUninit<(u32, f32)>], top: &mut usize, t_max: f64) -> Option<u32> {
+fn pop_within(stack: &[MaybeUninit<(u32, f32)>], top: &mut usize, limit: f32) -> Option<u32> {
     while *top > 0 {
         *top -= 1;
         // SAFETY: the walks write every slot below `top` before raising `top` above it.
         let (key, entry) = unsafe { stack[*top].assume_init() };
-        if entry as f64 <= t_max {
+        if entry <= limit {
             return Some(key);
         }
     }
@@ -187,7 +192,7 @@ impl TopLevel {
                 }
             } else {
                 let node = &self.nodes[entry as usize];
-                let (mut mask, dist) = r.hit_top(node, *t_max);
+                let (mut mask, dist) = r.hit_top(node, t_limit(*t_max));
                 // The node's children, farthest first, onto the stack (insertion into the
                 // few slots above `top`).
                 let base = top;
@@ -210,7 +215,7 @@ impl TopLevel {
                 }
             }
             // The nearest entry still within reach.
-            match pop_within(&stack, &mut top, *t_max) {
+            match pop_within(&stack, &mut top, t_limit(*t_max)) {
                 Some(key) => entry = key,
                 None => return Some(false),
             }
@@ -304,12 +309,12 @@ impl RayF32 {
     /// target, x86-64-v3), else the four-lane SSE or scalar form, so exactly the boxes the
     /// generic traversal enters are entered.
     #[inline(always)]
-    fn hit_top(&self, node: &TopNode, t_max: f64) -> (u32, [f32; WIDTH]) {
+    fn hit_top(&self, node: &TopNode, t_far: f32) -> (u32, [f32; WIDTH]) {
         #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
         // SAFETY: AVX2 is enabled for the whole build (cfg above).
-        return unsafe { self.hit_avx2(&node.bounds, t_max) };
+        return unsafe { self.hit_avx2_below(&node.bounds, t_far) };
         #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
-        return self.hit(&node.bounds, t_max);
+        return self.hit_below(&node.bounds, t_far);
     }
 }
 
