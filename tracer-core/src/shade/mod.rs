@@ -225,11 +225,21 @@ impl<'a> Tracer<'a> {
     /// through the medium, the ray counted as traced, black past the depth or the budget.
     #[inline(never)]
     fn escaped(&mut self, dir: DVec3, level: u32, media: &MediumStack) -> DVec3 {
-        if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
+        if !self.count_ray(level) {
             return DVec3::ZERO;
         }
-        self.counts.radiance += 1;
         through(media, self.stage.background(dir), f64::INFINITY)
+    }
+
+    /// Counts a radiance ray at `level` as traced, or returns false where it would see
+    /// black: past the depth, or past the sample's ray budget (then it is not counted).
+    #[inline(always)]
+    fn count_ray(&mut self, level: u32) -> bool {
+        if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
+            return false;
+        }
+        self.counts.radiance += 1;
+        true
     }
 
     /// The colour along `ray`, and the distance to what it hit (infinite on a miss).
@@ -245,10 +255,9 @@ impl<'a> Tracer<'a> {
         eye: Eye,
         leaving: Leaving,
     ) -> (DVec3, f64) {
-        if level >= self.max_depth || self.counts.radiance >= RAY_BUDGET_PER_SAMPLE {
+        if !self.count_ray(level) {
             return (DVec3::ZERO, 0.0);
         }
-        self.counts.radiance += 1;
         let world = self.stage.world;
         let hit = match eye {
             Eye::Walk => world.intersect_leaving(ray, t_min, t_max, leaving),
