@@ -19,7 +19,7 @@ use crate::sampler::SampleOrder;
 use crate::scene::Scene;
 use crate::settings::{RenderSettings, SettingsError, TileRect};
 use crate::shade::{Eye, RayCounts, Tracer};
-use crate::world::{BlockSlots, Hit, World};
+use crate::world::{BlockSlots, Hit, World, LANES};
 
 /// Largest recursion depth accepted; the ray budget bounds the work in any case.
 pub const MAX_DEPTH_LIMIT: u32 = 64;
@@ -432,6 +432,12 @@ impl RowShader<'_> {
         // its set-up (test and cornell_box rendered 10-15% slower with packets everywhere).
         let packet_slots = frustum
             .filter(|slots| samples.len() >= MIN_PACKET && self.world.any_model_among(slots));
+        // A pixel that sees only scene triangles: its eye rays' hits found four at a time
+        // ([`World::intersect_among_lanes`]), a group ahead of the samples being shaded, so
+        // that finding them overlaps the shading as finding each one in turn did.
+        let lane_slots = frustum.filter(|slots| {
+            packet_slots.is_none() && !slots.is_empty() && self.world.triangles_only_among(slots)
+        });
         // Traces one eye sample, its first hit found as `first` says (captures only the
         // tracer and the ray counters, so the row's buffers stay free).
         let mut trace = |ray: &mut EyeSample, first: Eye| {
@@ -524,11 +530,23 @@ impl RowShader<'_> {
                     }
                 }
             }
-            for (k, ray) in self.eyes.iter_mut().enumerate() {
-                let first_hit = match packet_slots {
-                    Some(_) => Eye::Found(self.hits[k]),
-                    None => one_by_one,
+            if let Some(slots) = lane_slots {
+                self.hits.resize(self.eyes.len(), None);
+                lane_hits(self.world, &self.eyes, &mut self.hits, slots, 0);
+            }
+            for k in 0..self.eyes.len() {
+                let first_hit = match (packet_slots, lane_slots) {
+                    (Some(_), _) => Eye::Found(self.hits[k]),
+                    (None, Some(slots)) => {
+                        if k % LANES == 0 {
+                            let next = k + LANES;
+                            lane_hits(self.world, &self.eyes, &mut self.hits, slots, next);
+                        }
+                        Eye::Found(self.hits[k])
+                    }
+                    (None, None) => one_by_one,
                 };
+                let ray = &mut self.eyes[k];
                 let sample = sample_at(start + k as u32);
                 let (color, counts) = trace(ray, first_hit);
                 if reordered {
@@ -543,6 +561,40 @@ impl RowShader<'_> {
             for (i, &(color, counts)) in self.traced.iter().enumerate() {
                 add_sample::<ESTIMATE>(acc, first + i as u32, color, counts);
             }
+        }
+    }
+}
+
+/// The hits of eye rays `eyes[start..start + LANES]` (those there are) among `slots`, into
+/// `hits` ([`World::intersect_among_lanes`]).
+fn lane_hits(
+    world: &World,
+    eyes: &[EyeSample],
+    hits: &mut [Option<Hit>],
+    slots: &[u32],
+    start: usize,
+) {
+    let end = eyes.len().min(start + LANES);
+    if start >= end {
+        return;
+    }
+    let (near, far) = (eyes[start].near, eyes[start].far);
+    if eyes[start..end]
+        .iter()
+        .all(|e| e.near == near && e.far == far)
+    {
+        let rays: [&Ray; LANES] = std::array::from_fn(|k| &eyes[(start + k).min(end - 1)].ray);
+        world.intersect_among_lanes(
+            &rays[..end - start],
+            near,
+            far,
+            slots,
+            &mut hits[start..end],
+        );
+    } else {
+        for k in start..end {
+            let e = &eyes[k];
+            hits[k] = world.intersect_among(&e.ray, e.near, e.far, slots);
         }
     }
 }

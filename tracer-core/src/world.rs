@@ -1133,6 +1133,59 @@ impl World {
         best
     }
 
+    /// Whether every one of these top-level slots is a scene triangle, which
+    /// [`World::intersect_among_lanes`] tests four rays at a time.
+    pub fn triangles_only_among(&self, slots: &[u32]) -> bool {
+        slots
+            .iter()
+            .all(|&slot| matches!(self.objects[slot as usize], Object::Triangle(_)))
+    }
+
+    /// [`World::intersect_among`] for up to four rays at once (`hits[i]` for `rays[i]`),
+    /// where every slot is a scene triangle ([`World::triangles_only_among`]): the same
+    /// hits to the bit, each ray's watertight test made in its own lane with the scalar
+    /// test's operations in its order. Rays whose sheared frames differ take the scalar test.
+    pub fn intersect_among_lanes(
+        &self,
+        rays: &[&Ray],
+        t_min: f64,
+        t_max: f64,
+        slots: &[u32],
+        hits: &mut [Option<Hit>],
+    ) {
+        let n = rays.len();
+        assert!(
+            (1..=LANES).contains(&n) && hits.len() == n,
+            "{n} rays for {LANES} lanes"
+        );
+        let tri_rays: [TriangleRay; LANES] =
+            std::array::from_fn(|i| TriangleRay::new(rays[i.min(n - 1)]));
+        let axes = |r: &TriangleRay| (r.kx, r.ky, r.kz);
+        if tri_rays[1..n].iter().any(|r| axes(r) != axes(&tri_rays[0])) {
+            for (ray, hit) in rays.iter().zip(hits.iter_mut()) {
+                *hit = self.intersect_among(ray, t_min, t_max, slots);
+            }
+            return;
+        }
+        let frame = LaneFrame::new(&tri_rays);
+        let mut best: [Option<Hit>; LANES] = [None; LANES];
+        let mut limit = [t_max; LANES];
+        for &slot in slots {
+            let Object::Triangle(i) = self.objects[slot as usize] else {
+                unreachable!("intersect_among_lanes takes scene triangles only");
+            };
+            let bounds = std::array::from_fn(|l| tie_bound(best[l].is_some(), limit[l]));
+            let found = frame.triangle(self.triangles[i as usize].positions, t_min, bounds);
+            for l in 0..n {
+                if let Some((t, bary)) = found[l] {
+                    let h = ObjectHit { t, prim: 0, bary };
+                    keep_nearer(&mut best[l], &mut limit[l], slot as usize, h);
+                }
+            }
+        }
+        hits.copy_from_slice(&best[..n]);
+    }
+
     /// Whether any of these top-level slots holds a mesh model (the only kind of object
     /// [`World::intersect_packet`] walks once for a whole packet).
     pub fn any_model_among(&self, slots: &[u32]) -> bool {
@@ -2125,6 +2178,164 @@ fn tie_bound(found: bool, t_max: f64) -> f64 {
         t_max.next_up()
     } else {
         t_max
+    }
+}
+
+/// Rays of [`World::intersect_among_lanes`]: one AVX2 register of f64.
+pub const LANES: usize = 4;
+
+/// Four rays' constants of the watertight test (their sheared frames share their axes),
+/// lane by lane: each origin on the frame's axes and each shear.
+struct LaneFrame {
+    axes: [usize; 3],
+    /// Origin on kx, ky, kz, then shear x, y, z, each a lane per ray.
+    rows: [[f64; LANES]; 6],
+}
+
+impl LaneFrame {
+    #[inline(always)]
+    fn new(rays: &[TriangleRay; LANES]) -> LaneFrame {
+        let axes = [rays[0].kx, rays[0].ky, rays[0].kz];
+        let row = |f: &dyn Fn(&TriangleRay) -> f64| std::array::from_fn(|l| f(&rays[l]));
+        LaneFrame {
+            axes,
+            rows: [
+                row(&|r| r.origin[axes[0]]),
+                row(&|r| r.origin[axes[1]]),
+                row(&|r| r.origin[axes[2]]),
+                row(&|r| r.shear.x),
+                row(&|r| r.shear.y),
+                row(&|r| r.shear.z),
+            ],
+        }
+    }
+
+    /// [`intersect_triangle`] of `[v0, v1, v2]` for the four rays, each accepted within
+    /// (t_min, t_max[lane]): per lane the scalar test's operations in its order (none fused,
+    /// as the scalar code has none), so the same t and barycentrics to the bit.
+    #[inline(always)]
+    fn triangle(
+        &self,
+        corners: [DVec3; 3],
+        t_min: f64,
+        t_max: [f64; LANES],
+    ) -> [Option<(f64, [f64; 3])>; LANES] {
+        #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+        {
+            self.triangle_avx2(corners, t_min, t_max)
+        }
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "avx2")))]
+        {
+            self.triangle_scalar(corners, t_min, t_max)
+        }
+    }
+
+    #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
+    #[inline(always)]
+    #[allow(unused_unsafe)]
+    fn triangle_avx2(
+        &self,
+        corners: [DVec3; 3],
+        t_min: f64,
+        t_max: [f64; LANES],
+    ) -> [Option<(f64, [f64; 3])>; LANES] {
+        use std::arch::x86_64::*;
+        let [kx, ky, kz] = self.axes;
+        // SAFETY: AVX2 is enabled for the build; every load and store is of a [f64; 4].
+        unsafe {
+            let row = |r: usize| _mm256_loadu_pd(self.rows[r].as_ptr());
+            let (ox, oy, oz) = (row(0), row(1), row(2));
+            let (sx, sy, sz) = (row(3), row(4), row(5));
+            let corner = |v: DVec3| {
+                let az = _mm256_sub_pd(_mm256_set1_pd(v[kz]), oz);
+                let ax = _mm256_sub_pd(
+                    _mm256_sub_pd(_mm256_set1_pd(v[kx]), ox),
+                    _mm256_mul_pd(sx, az),
+                );
+                let ay = _mm256_sub_pd(
+                    _mm256_sub_pd(_mm256_set1_pd(v[ky]), oy),
+                    _mm256_mul_pd(sy, az),
+                );
+                (ax, ay, az)
+            };
+            let (ax, ay, az) = corner(corners[0]);
+            let (bx, by, bz) = corner(corners[1]);
+            let (cx, cy, cz) = corner(corners[2]);
+            let cross = |p, q, r, s| _mm256_sub_pd(_mm256_mul_pd(p, q), _mm256_mul_pd(r, s));
+            let u = cross(cx, by, cy, bx);
+            let v = cross(ax, cy, ay, cx);
+            let w = cross(bx, ay, by, ax);
+            let zero = _mm256_setzero_pd();
+            let lt = |a, b| _mm256_cmp_pd::<_CMP_LT_OQ>(a, b);
+            let gt = |a, b| _mm256_cmp_pd::<_CMP_GT_OQ>(a, b);
+            let or3 = |a, b, c| _mm256_or_pd(_mm256_or_pd(a, b), c);
+            let outside = _mm256_and_pd(
+                or3(lt(u, zero), lt(v, zero), lt(w, zero)),
+                or3(gt(u, zero), gt(v, zero), gt(w, zero)),
+            );
+            // Most triangles a pixel's rays test are missed by all of them: no divisions then
+            // (the scalar test returns at its first comparison).
+            if _mm256_movemask_pd(outside) == 0xf {
+                return [None; LANES];
+            }
+            let det = _mm256_add_pd(_mm256_add_pd(u, v), w);
+            let t_scaled = _mm256_add_pd(
+                _mm256_add_pd(
+                    _mm256_mul_pd(u, _mm256_mul_pd(sz, az)),
+                    _mm256_mul_pd(v, _mm256_mul_pd(sz, bz)),
+                ),
+                _mm256_mul_pd(w, _mm256_mul_pd(sz, cz)),
+            );
+            let t = _mm256_div_pd(t_scaled, det);
+            let inv = _mm256_div_pd(_mm256_set1_pd(1.0), det);
+            let abs = _mm256_andnot_pd(_mm256_set1_pd(-0.0), det);
+            let finite = lt(abs, _mm256_set1_pd(f64::INFINITY));
+            let nonzero = _mm256_cmp_pd::<_CMP_NEQ_UQ>(det, zero);
+            let within = _mm256_and_pd(
+                gt(t, _mm256_set1_pd(t_min)),
+                lt(t, _mm256_loadu_pd(t_max.as_ptr())),
+            );
+            let keep = _mm256_andnot_pd(
+                outside,
+                _mm256_and_pd(_mm256_and_pd(finite, nonzero), within),
+            );
+            let mask = _mm256_movemask_pd(keep);
+            let mut out = [[0.0; LANES]; 4];
+            _mm256_storeu_pd(out[0].as_mut_ptr(), t);
+            _mm256_storeu_pd(out[1].as_mut_ptr(), _mm256_mul_pd(u, inv));
+            _mm256_storeu_pd(out[2].as_mut_ptr(), _mm256_mul_pd(v, inv));
+            _mm256_storeu_pd(out[3].as_mut_ptr(), _mm256_mul_pd(w, inv));
+            std::array::from_fn(|l| {
+                (mask & (1 << l) != 0).then(|| (out[0][l], [out[1][l], out[2][l], out[3][l]]))
+            })
+        }
+    }
+
+    /// The same lane by lane (targets without AVX2, and the vector version's check).
+    #[cfg_attr(all(target_arch = "x86_64", target_feature = "avx2"), allow(dead_code))]
+    fn triangle_scalar(
+        &self,
+        corners: [DVec3; 3],
+        t_min: f64,
+        t_max: [f64; LANES],
+    ) -> [Option<(f64, [f64; 3])>; LANES] {
+        std::array::from_fn(|l| {
+            let ray = TriangleRay {
+                origin: DVec3::ZERO,
+                kx: self.axes[0],
+                ky: self.axes[1],
+                kz: self.axes[2],
+                shear: DVec3::new(self.rows[3][l], self.rows[4][l], self.rows[5][l]),
+            };
+            // The origin on the frame's axes, back in x, y, z order.
+            let mut origin = DVec3::ZERO;
+            for (k, &axis) in self.axes.iter().enumerate() {
+                origin[axis] = self.rows[k][l];
+            }
+            let ray = TriangleRay { origin, ..ray };
+            let [a, b, c] = corners;
+            intersect_triangle(&ray, a, b, c, t_min, t_max[l]).map(|h| (h.t, h.bary))
+        })
     }
 }
 
@@ -4002,6 +4213,114 @@ mod tests {
             hits += usize::from(linear.is_some());
         }
         assert!(hits > 200, "the rays meet the objects ({hits} hits)");
+    }
+
+    #[test]
+    fn eye_rays_in_lanes_hit_what_each_finds_alone_to_the_bit() {
+        // Scene triangles of a fan sharing edges and a vertex, a copy of one in a later slot
+        // (ties in t go to the lower slot), a degenerate one, one far behind another and a
+        // tilted one, seen by rays from one eye in groups of one to four, some groups mixing
+        // the sheared frames' axes (the scalar test's fallback).
+        let tri = |a: [f64; 3], b: [f64; 3], c: [f64; 3]| WorldTriangle {
+            positions: [a, b, c].map(DVec3::from_array),
+            normals: [DVec3::Z; 3],
+            tex_coords: [DVec2::ZERO; 3],
+            materials: [0; 3],
+        };
+        let mut triangles = Vec::new();
+        for k in 0..6 {
+            let (a0, a1) = (
+                k as f64 * std::f64::consts::FRAC_PI_3,
+                (k + 1) as f64 * std::f64::consts::FRAC_PI_3,
+            );
+            triangles.push(tri(
+                [0.0, 0.0, -4.0],
+                [2.0 * a0.cos(), 2.0 * a0.sin(), -4.0],
+                [2.0 * a1.cos(), 2.0 * a1.sin(), -4.0],
+            ));
+        }
+        triangles.push(triangles[2].clone());
+        triangles.push(tri([0.0, 0.0, -3.0], [1.0, 1.0, -3.0], [2.0, 2.0, -3.0]));
+        triangles.push(tri([-5.0, -5.0, -9.0], [5.0, -5.0, -9.0], [0.0, 5.0, -9.0]));
+        triangles.push(tri([-1.0, -0.5, -2.0], [0.5, -1.0, -3.5], [0.3, 1.2, -2.5]));
+        let world = World::with_movers(vec![], triangles, vec![], vec![], vec![], (0.0, 0.0));
+        let slots: Vec<u32> = (0..world.objects.len() as u32).collect();
+        assert!(world.triangles_only_among(&slots));
+        let mut next = crate::test_rng::uniform(29);
+        let (mut hits, mut mixed) = (0, 0);
+        for group in 0..3000 {
+            let n = 1 + group % LANES;
+            // Mostly down -z; every seventh group also fans out to the side, mixing axes.
+            let spread = if group % 7 == 0 { 6.0 } else { 1.2 };
+            let rays: Vec<Ray> = (0..n)
+                .map(|_| {
+                    let d = DVec3::new((next() - 0.5) * spread, (next() - 0.5) * spread, -1.0);
+                    Ray::new(DVec3::new(0.0, 0.0, 0.5), d.normalize())
+                })
+                .collect();
+            let axes = |r: &Ray| {
+                let t = TriangleRay::new(r);
+                (t.kx, t.ky, t.kz)
+            };
+            mixed += usize::from(rays.iter().any(|r| axes(r) != axes(&rays[0])));
+            let refs: Vec<&Ray> = rays.iter().collect();
+            let mut lanes = vec![None; n];
+            world.intersect_among_lanes(&refs, 0.01, 100.0, &slots, &mut lanes);
+            let key = |h: Option<Hit>| {
+                h.map(|h| (h.t.to_bits(), h.object, h.prim, h.bary.map(f64::to_bits)))
+            };
+            for (ray, lane) in rays.iter().zip(&lanes) {
+                let alone = world.intersect_among(ray, 0.01, 100.0, &slots);
+                assert_eq!(key(*lane), key(alone), "ray {ray:?}");
+                hits += usize::from(alone.is_some());
+            }
+        }
+        assert!(
+            hits > 2000 && mixed > 50,
+            "{hits} hits, {mixed} mixed groups"
+        );
+    }
+
+    #[test]
+    fn the_lane_triangle_test_is_the_scalar_one_in_every_lane() {
+        let mut next = crate::test_rng::uniform(31);
+        let mut point = || DVec3::new(next() * 4.0 - 2.0, next() * 4.0 - 2.0, next() * 4.0 - 6.0);
+        let mut met = 0;
+        for _ in 0..5000 {
+            let origin = point() * 0.1;
+            let target = point();
+            let rays: [TriangleRay; LANES] = std::array::from_fn(|l| {
+                let jitter = DVec3::new(l as f64 * 0.03, -(l as f64) * 0.02, 0.0);
+                TriangleRay::new(&Ray::new(origin, (target + jitter - origin).normalize()))
+            });
+            if rays
+                .iter()
+                .any(|r| (r.kx, r.ky, r.kz) != (rays[0].kx, rays[0].ky, rays[0].kz))
+            {
+                continue;
+            }
+            let frame = LaneFrame::new(&rays);
+            let corners = [target, point(), point()];
+            let t_max = [100.0, 5.0, 3.0, 100.0];
+            let bits = |h: [Option<(f64, [f64; 3])>; LANES]| {
+                h.map(|h| h.map(|(t, b)| (t.to_bits(), b.map(f64::to_bits))))
+            };
+            let lanes = frame.triangle(corners, 0.0, t_max);
+            assert_eq!(
+                bits(lanes),
+                bits(frame.triangle_scalar(corners, 0.0, t_max))
+            );
+            for (l, ray) in rays.iter().enumerate() {
+                let [a, b, c] = corners;
+                let alone = intersect_triangle(ray, a, b, c, 0.0, t_max[l]).map(|h| (h.t, h.bary));
+                assert_eq!(
+                    alone.map(|(t, b)| (t.to_bits(), b.map(f64::to_bits))),
+                    lanes[l].map(|(t, b)| (t.to_bits(), b.map(f64::to_bits)))
+                );
+                met += usize::from(alone.is_some());
+            }
+        }
+        assert!(met > 1000, "{met} hits");
     }
 
     #[test]
