@@ -432,12 +432,11 @@ impl RowShader<'_> {
         // its set-up (test and cornell_box rendered 10-15% slower with packets everywhere).
         let packet_slots = frustum
             .filter(|slots| samples.len() >= MIN_PACKET && self.world.any_model_among(slots));
-        // A pixel that sees only scene triangles: its eye rays' hits found four at a time
-        // ([`World::intersect_among_lanes`]), a group ahead of the samples being shaded, so
-        // that finding them overlaps the shading as finding each one in turn did.
-        let lane_slots = frustum.filter(|slots| {
-            packet_slots.is_none() && !slots.is_empty() && self.world.triangles_only_among(slots)
-        });
+        // A pixel that sees scene triangles and no mesh model: its eye rays' hits found four
+        // at a time ([`World::intersect_among_lanes`]), a group ahead of the samples being
+        // shaded, so that finding them overlaps the shading as finding each one in turn did.
+        let lane_slots =
+            frustum.filter(|slots| packet_slots.is_none() && self.world.lanes_among(slots));
         // Traces one eye sample, its first hit found as `first` says (captures only the
         // tracer and the ray counters, so the row's buffers stay free).
         let mut trace = |ray: &mut EyeSample, first: Eye| {

@@ -1133,18 +1133,20 @@ impl World {
         best
     }
 
-    /// Whether every one of these top-level slots is a scene triangle, which
-    /// [`World::intersect_among_lanes`] tests four rays at a time.
-    pub fn triangles_only_among(&self, slots: &[u32]) -> bool {
-        slots
-            .iter()
-            .all(|&slot| matches!(self.objects[slot as usize], Object::Triangle(_)))
+    /// Whether [`World::intersect_among_lanes`] serves rays among these top-level slots:
+    /// some slot is a scene triangle (which it tests four rays at a time) and none is a mesh
+    /// model (whose packet walk serves them better, [`World::intersect_packet`]).
+    pub fn lanes_among(&self, slots: &[u32]) -> bool {
+        let kind = |slot: &u32| &self.objects[*slot as usize];
+        slots.iter().any(|s| matches!(kind(s), Object::Triangle(_)))
+            && !slots.iter().any(|s| matches!(kind(s), Object::Model(_)))
     }
 
-    /// [`World::intersect_among`] for up to four rays at once (`hits[i]` for `rays[i]`),
-    /// where every slot is a scene triangle ([`World::triangles_only_among`]): the same
-    /// hits to the bit, each ray's watertight test made in its own lane with the scalar
-    /// test's operations in its order. Rays whose sheared frames differ take the scalar test.
+    /// [`World::intersect_among`] for up to four rays at once (`hits[i]` for `rays[i]`):
+    /// the same hits to the bit. Scene triangles are tested four rays at a time, each ray's
+    /// watertight test in its own lane with the scalar test's operations in its order; other
+    /// objects ray by ray, as `intersect_among` tests them. Rays whose sheared frames differ
+    /// take `intersect_among` itself.
     pub fn intersect_among_lanes(
         &self,
         rays: &[&Ray],
@@ -1171,15 +1173,32 @@ impl World {
         let mut best: [Option<Hit>; LANES] = [None; LANES];
         let mut limit = [t_max; LANES];
         for &slot in slots {
-            let Object::Triangle(i) = self.objects[slot as usize] else {
-                unreachable!("intersect_among_lanes takes scene triangles only");
+            let slot = slot as usize;
+            let bounds: [f64; LANES] =
+                std::array::from_fn(|l| tie_bound(best[l].is_some(), limit[l]));
+            let Object::Triangle(i) = self.objects[slot] else {
+                for l in 0..n {
+                    // The lane's own set-up, as `intersect_among` caches it for the ray.
+                    let mut tri_ray = Some(tri_rays[l]);
+                    let hit = self.hit_object::<false>(
+                        slot,
+                        rays[l],
+                        t_min,
+                        bounds[l],
+                        NO_PRIM,
+                        &mut tri_ray,
+                    );
+                    if let Some(h) = hit {
+                        keep_nearer(&mut best[l], &mut limit[l], slot, h);
+                    }
+                }
+                continue;
             };
-            let bounds = std::array::from_fn(|l| tie_bound(best[l].is_some(), limit[l]));
             let found = frame.triangle(self.triangles[i as usize].positions, t_min, bounds);
             for l in 0..n {
                 if let Some((t, bary)) = found[l] {
                     let h = ObjectHit { t, prim: 0, bary };
-                    keep_nearer(&mut best[l], &mut limit[l], slot as usize, h);
+                    keep_nearer(&mut best[l], &mut limit[l], slot, h);
                 }
             }
         }
@@ -4243,9 +4262,33 @@ mod tests {
         triangles.push(tri([0.0, 0.0, -3.0], [1.0, 1.0, -3.0], [2.0, 2.0, -3.0]));
         triangles.push(tri([-5.0, -5.0, -9.0], [5.0, -5.0, -9.0], [0.0, 5.0, -9.0]));
         triangles.push(tri([-1.0, -0.5, -2.0], [0.5, -1.0, -3.5], [0.3, 1.2, -2.5]));
-        let world = World::with_movers(vec![], triangles, vec![], vec![], vec![], (0.0, 0.0));
+        // Spheres among the slots too (one moved only, one turned and stretched), which
+        // each ray tests alone.
+        let spheres = vec![
+            Sphere {
+                transform: Transform::new(DVec3::new(0.5, 0.3, -3.5), DQuat::IDENTITY, DVec3::ONE),
+                radius: 0.4,
+                material: 0,
+            },
+            Sphere {
+                transform: Transform::new(
+                    DVec3::new(-0.6, 0.2, -5.0),
+                    DQuat::from_rotation_z(0.4),
+                    DVec3::new(1.0, 2.0, 1.0),
+                ),
+                radius: 0.5,
+                material: 0,
+            },
+        ];
+        let world = World::with_movers(spheres, triangles, vec![], vec![], vec![], (0.0, 0.0));
         let slots: Vec<u32> = (0..world.objects.len() as u32).collect();
-        assert!(world.triangles_only_among(&slots));
+        assert!(world.lanes_among(&slots));
+        assert!(slots
+            .iter()
+            .any(|&s| matches!(world.objects[s as usize], Object::TranslatedSphere(_))));
+        assert!(slots
+            .iter()
+            .any(|&s| matches!(world.objects[s as usize], Object::Sphere(_))));
         let mut next = crate::test_rng::uniform(29);
         let (mut hits, mut mixed) = (0, 0);
         for group in 0..3000 {
