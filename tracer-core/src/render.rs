@@ -508,13 +508,17 @@ impl RowShader<'_> {
                 (s, stratum(&self.order, s))
             }));
             eye.samples_in(x, self.y, &self.picks, &mut self.eyes);
+            // Whether the batch's rays share their range of hits, as the packet and lane
+            // tests take them.
+            let (near, far) = (self.eyes[0].near, self.eyes[0].far);
+            let shared_range = self.eyes.iter().all(|e| e.near == near && e.far == far);
+            let lanes = lane_slots.filter(|_| shared_range);
             if let Some(slots) = packet_slots {
                 self.rays.clear();
                 self.rays.extend(self.eyes.iter().map(|e| e.ray));
                 self.hits.resize(self.eyes.len(), None);
                 let hits = &mut self.hits[..];
-                let (near, far) = (self.eyes[0].near, self.eyes[0].far);
-                if self.eyes.iter().all(|e| e.near == near && e.far == far) {
+                if shared_range {
                     self.world.intersect_packet(
                         &self.rays,
                         near,
@@ -529,12 +533,12 @@ impl RowShader<'_> {
                     }
                 }
             }
-            if let Some(slots) = lane_slots {
+            if let Some(slots) = lanes {
                 self.hits.resize(self.eyes.len(), None);
                 lane_hits(self.world, &self.eyes, &mut self.hits, slots, 0);
             }
             for k in 0..self.eyes.len() {
-                let first_hit = match (packet_slots, lane_slots) {
+                let first_hit = match (packet_slots, lanes) {
                     (Some(_), _) => Eye::Found(self.hits[k]),
                     (None, Some(slots)) => {
                         if k % LANES == 0 {
@@ -564,8 +568,8 @@ impl RowShader<'_> {
     }
 }
 
-/// The hits of eye rays `eyes[start..start + LANES]` (those there are) among `slots`, into
-/// `hits` ([`World::intersect_among_lanes`]).
+/// The hits of eye rays `eyes[start..start + LANES]` (those there are; all with the same
+/// near and far planes) among `slots`, into `hits` ([`World::intersect_among_lanes`]).
 fn lane_hits(
     world: &World,
     eyes: &[EyeSample],
@@ -577,25 +581,15 @@ fn lane_hits(
     if start >= end {
         return;
     }
+    let rays: [&Ray; LANES] = std::array::from_fn(|k| &eyes[(start + k).min(end - 1)].ray);
     let (near, far) = (eyes[start].near, eyes[start].far);
-    if eyes[start..end]
-        .iter()
-        .all(|e| e.near == near && e.far == far)
-    {
-        let rays: [&Ray; LANES] = std::array::from_fn(|k| &eyes[(start + k).min(end - 1)].ray);
-        world.intersect_among_lanes(
-            &rays[..end - start],
-            near,
-            far,
-            slots,
-            &mut hits[start..end],
-        );
-    } else {
-        for k in start..end {
-            let e = &eyes[k];
-            hits[k] = world.intersect_among(&e.ray, e.near, e.far, slots);
-        }
-    }
+    world.intersect_among_lanes(
+        &rays[..end - start],
+        near,
+        far,
+        slots,
+        &mut hits[start..end],
+    );
 }
 
 /// Pixels of a row whose frustum slots are found among one block's candidates

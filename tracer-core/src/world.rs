@@ -1162,8 +1162,10 @@ impl World {
         );
         let tri_rays: [TriangleRay; LANES] =
             std::array::from_fn(|i| TriangleRay::new(rays[i.min(n - 1)]));
-        let axes = |r: &TriangleRay| (r.kx, r.ky, r.kz);
-        if tri_rays[1..n].iter().any(|r| axes(r) != axes(&tri_rays[0])) {
+        if tri_rays[1..n]
+            .iter()
+            .any(|r| r.axes() != tri_rays[0].axes())
+        {
             for (ray, hit) in rays.iter().zip(hits.iter_mut()) {
                 *hit = self.intersect_among(ray, t_min, t_max, slots);
             }
@@ -2214,7 +2216,7 @@ struct LaneFrame {
 impl LaneFrame {
     #[inline(always)]
     fn new(rays: &[TriangleRay; LANES]) -> LaneFrame {
-        let axes = [rays[0].kx, rays[0].ky, rays[0].kz];
+        let axes = rays[0].axes();
         let row = |f: &dyn Fn(&TriangleRay) -> f64| std::array::from_fn(|l| f(&rays[l]));
         LaneFrame {
             axes,
@@ -2338,20 +2340,21 @@ impl LaneFrame {
         t_min: f64,
         t_max: [f64; LANES],
     ) -> [Option<(f64, [f64; 3])>; LANES] {
+        let [kx, ky, kz] = self.axes;
         std::array::from_fn(|l| {
-            let ray = TriangleRay {
-                origin: DVec3::ZERO,
-                kx: self.axes[0],
-                ky: self.axes[1],
-                kz: self.axes[2],
-                shear: DVec3::new(self.rows[3][l], self.rows[4][l], self.rows[5][l]),
-            };
-            // The origin on the frame's axes, back in x, y, z order.
+            // The origin's rows are on the frame's axes: back to x, y, z.
             let mut origin = DVec3::ZERO;
-            for (k, &axis) in self.axes.iter().enumerate() {
-                origin[axis] = self.rows[k][l];
+            for (row, axis) in self.axes.into_iter().enumerate() {
+                origin[axis] = self.rows[row][l];
             }
-            let ray = TriangleRay { origin, ..ray };
+            let shear = DVec3::new(self.rows[3][l], self.rows[4][l], self.rows[5][l]);
+            let ray = TriangleRay {
+                origin,
+                kx,
+                ky,
+                kz,
+                shear,
+            };
             let [a, b, c] = corners;
             intersect_triangle(&ray, a, b, c, t_min, t_max[l]).map(|h| (h.t, h.bary))
         })
@@ -4301,10 +4304,7 @@ mod tests {
                     Ray::new(DVec3::new(0.0, 0.0, 0.5), d.normalize())
                 })
                 .collect();
-            let axes = |r: &Ray| {
-                let t = TriangleRay::new(r);
-                (t.kx, t.ky, t.kz)
-            };
+            let axes = |r: &Ray| TriangleRay::new(r).axes();
             mixed += usize::from(rays.iter().any(|r| axes(r) != axes(&rays[0])));
             let refs: Vec<&Ray> = rays.iter().collect();
             let mut lanes = vec![None; n];
@@ -4336,10 +4336,7 @@ mod tests {
                 let jitter = DVec3::new(l as f64 * 0.03, -(l as f64) * 0.02, 0.0);
                 TriangleRay::new(&Ray::new(origin, (target + jitter - origin).normalize()))
             });
-            if rays
-                .iter()
-                .any(|r| (r.kx, r.ky, r.kz) != (rays[0].kx, rays[0].ky, rays[0].kz))
-            {
+            if rays.iter().any(|r| r.axes() != rays[0].axes()) {
                 continue;
             }
             let frame = LaneFrame::new(&rays);

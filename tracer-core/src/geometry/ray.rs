@@ -67,6 +67,13 @@ pub struct TriangleRay {
 }
 
 impl TriangleRay {
+    /// The sheared frame's axes (kx, ky, kz): rays with the same ones take a triangle's
+    /// corners in the same order, so their tests can share lanes.
+    #[inline(always)]
+    pub fn axes(&self) -> [usize; 3] {
+        [self.kx, self.ky, self.kz]
+    }
+
     #[inline(always)]
     pub fn new(ray: &Ray) -> Self {
         // Without branches: which axis is largest, and the sign along it, change from ray to
